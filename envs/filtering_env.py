@@ -1,0 +1,180 @@
+"""FilteringEnv: any StochasticSystem as a natively batched TorchRL environment.
+
+The filtering MDP (DESIGN.md): at step t the agent sees the measurement y_t, the known controls
+u_t and u_{t−1}, and its own previous estimate x̂_{t−1}; its action is the estimate x̂_t; the
+reward is r_t = −‖x_t − x̂_t‖²_W. After a reset the previous estimate is the prior mean x̂_0 and
+the first measurement is y_1 (see ``envs.system`` for the time convention).
+
+Keys. Observations: ``measurement``, ``control`` (u_t), ``prev_control`` (u_{t−1}, what the
+DAOF-v1 predictor needs), ``prev_estimate`` (x̂_{t−1}). The true state x_t travels under
+``true_state`` for logging and supervised training only: no filter module in this project reads
+it, and a filter that did would be cheating.
+
+Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (about
+the RMSE of a near-optimal filter per state), so a near-optimal filter earns about −1 per step
+and both states count equally relative to what is achievable.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from envs.system import StochasticSystem
+
+__all__ = ["FilteringEnv", "make_env"]
+
+
+class FilteringEnv(EnvBase):
+    """Batched, batch-locked env: action = estimate x̂_t, reward = −‖x_t − x̂_t‖²_W.
+
+    Args:
+        system: the system to filter.
+        batch_size: number of parallel episodes B (an int or ``[B]``).
+        max_steps: episode length T; an episode ends ``truncated`` after T estimates.
+        reward_weights: per-state weights W (``[state_dim]``); default 1/(n·error_scale²).
+        seed: seed of the env's ``torch.Generator`` (``set_seed`` can change it later).
+        device: where the simulation runs.
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        system: StochasticSystem,
+        batch_size: int | tuple[int, ...] = 1,
+        max_steps: int = 500,
+        reward_weights=None,
+        seed: int | None = None,
+        device="cpu",
+    ):
+        batch_size = torch.Size([batch_size] if isinstance(batch_size, int) else batch_size)
+        if len(batch_size) != 1 or batch_size[0] < 1:
+            raise ValueError(f"FilteringEnv needs a batch size [B] with B >= 1, got {list(batch_size)}")
+        if max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        super().__init__(device=device, batch_size=batch_size)
+        self.system = system.to(self.device)
+        self.max_steps = int(max_steps)
+        n = system.state_dim
+        if reward_weights is None:
+            reward_weights = 1.0 / (n * system.error_scale**2)
+        self.reward_weights = torch.as_tensor(reward_weights, dtype=torch.float32, device=self.device)
+        if self.reward_weights.shape != (n,) or (self.reward_weights < 0).any():
+            raise ValueError(f"reward_weights must be {n} non-negative numbers, got {reward_weights}")
+        self._make_specs()
+        self.rng = torch.Generator(device=self.device)
+        self._set_seed(seed if seed is not None else int(torch.seed() % 2**31))
+        self._sim: TensorDict | None = None
+        self._obs: TensorDict | None = None
+        self._prev_estimate: torch.Tensor | None = None
+
+    # ----------------------------------------------------------------- specs
+    def _make_specs(self) -> None:
+        s, B, dev = self.system, self.batch_size, self.device
+        n, m, c = s.state_dim, s.measurement_dim, s.control_dim
+        self.observation_spec = Composite(
+            measurement=Unbounded(shape=(*B, m), device=dev),
+            control=Unbounded(shape=(*B, c), device=dev),
+            prev_control=Unbounded(shape=(*B, c), device=dev),
+            prev_estimate=Unbounded(shape=(*B, n), device=dev),
+            true_state=Unbounded(shape=(*B, n), device=dev),
+            shape=B,
+            device=dev,
+        )
+        self.action_spec = Bounded(
+            low=s.state_low.to(dev).expand(*B, n),
+            high=s.state_high.to(dev).expand(*B, n),
+            shape=(*B, n),
+            device=dev,
+        )
+        self.reward_spec = Unbounded(shape=(*B, 1), device=dev)
+        flag = Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
+        self.full_done_spec = Composite(
+            done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=B, device=dev
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng.manual_seed(int(seed) if seed is not None else 0)
+
+    # ----------------------------------------------------------------- dynamics
+    def _observation(self) -> dict:
+        return {
+            "measurement": self._obs["measurement"],
+            "control": self._obs["control"],
+            "prev_control": self._obs["prev_control"],
+            "prev_estimate": self._prev_estimate,
+            "true_state": self._obs["state"],
+        }
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDict:
+        B = self.batch_size[0]
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict["_reset"].reshape(B)
+        # Draw a whole batch of new episodes and take the masked rows: the random stream does
+        # not depend on which runs are reset.
+        sim = self.system.reset_episode(B, self.rng, self.device)
+        sim, obs = self.system.advance(sim, self.rng)
+        prior_mean = self.system.prior.mean.to(self.device).expand(B, -1).clone()
+        if mask is None or self._sim is None:
+            self._sim, self._obs, self._prev_estimate = sim, obs, prior_mean
+        else:
+            self._sim[mask] = sim[mask]
+            self._obs[mask] = obs[mask]
+            self._prev_estimate = torch.where(mask[:, None], prior_mean, self._prev_estimate)
+        false = torch.zeros(B, 1, dtype=torch.bool, device=self.device)
+        return TensorDict(
+            {**self._observation(), "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        estimate = tensordict["action"]
+        if not torch.isfinite(estimate).all():
+            bad = (~torch.isfinite(estimate)).any(-1).nonzero().flatten().tolist()
+            raise ValueError(f"the estimate (action) is not finite in run(s) {bad[:10]}")
+        error = self._obs["state"] - estimate
+        reward = -(error.pow(2) * self.reward_weights).sum(-1, keepdim=True)
+        self._sim, self._obs = self.system.advance(self._sim, self.rng)
+        self._prev_estimate = estimate.detach().clone()
+        # sim["t"] counts measured steps; the episode ends after max_steps estimates.
+        truncated = (self._sim["t"] > self.max_steps).unsqueeze(-1)
+        return TensorDict(
+            {
+                **self._observation(),
+                "reward": reward,
+                "done": truncated.clone(),
+                "terminated": torch.zeros_like(truncated),
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+
+def make_env(
+    name: str,
+    batch_size: int = 1,
+    window: int = 20,
+    scenario: str = "nominal",
+    seed: int | None = None,
+    device="cpu",
+    max_steps: int = 500,
+    include_controls: bool = True,
+    reward_weights=None,
+    **overrides,
+):
+    """The filtering env of system ``name`` with its history window (a ``TransformedEnv``).
+
+    ``overrides`` go to ``make_system`` (system parameters).
+    """
+    from envs.history import with_window
+    from envs.registry import make_system
+
+    system = make_system(name, scenario, **overrides)
+    env = FilteringEnv(system, batch_size, max_steps, reward_weights, seed, device)
+    return with_window(env, window, include_controls and system.control_dim > 0)

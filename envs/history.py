@@ -1,0 +1,51 @@
+"""The history window h_t^N that a DAOF policy reads.
+
+h_t^N = (x̂_{t−N}, y_{t−N+1}, …, x̂_{t−1}, y_t): the last N (previous estimate, measurement)
+pairs, each optionally followed by the controls (u_t, u_{t−1}). It is TorchRL's own
+``CatTensors`` (one frame per step, keys in the order given) followed by ``CatFrames`` (the last
+N frames, oldest first, along the last dim).
+
+Reset padding: right after a reset the window is filled with N copies of the first frame
+(``padding="same"``), i.e. the prior mean and the first measurement; partial resets pad only the
+runs that were reset. The env stores the window once per step (``history`` and its ``next``
+twin, as every TorchRL observation), so a replay buffer needs no frame-stacking transform of its
+own and must not be given one.
+"""
+
+from __future__ import annotations
+
+from torchrl.envs import CatFrames, CatTensors, Compose, TransformedEnv
+
+__all__ = ["FRAME_KEY", "HISTORY_KEY", "frame_keys", "history_dim", "window_transform", "with_window"]
+
+HISTORY_KEY = "history"
+FRAME_KEY = "frame"
+
+
+def frame_keys(include_controls: bool) -> list[str]:
+    """The per-step keys that form one frame of the window, in window order."""
+    keys = ["prev_estimate", "measurement"]
+    if include_controls:
+        keys += ["control", "prev_control"]
+    return keys
+
+
+def window_transform(window: int, include_controls: bool = True) -> Compose:
+    """Transforms that add ``frame`` and the N-step window ``history`` to an env's output."""
+    if not isinstance(window, int) or window < 1:
+        raise ValueError(f"window must be an integer N >= 1, got {window!r}")
+    return Compose(
+        CatTensors(frame_keys(include_controls), out_key=FRAME_KEY, del_keys=False, sort=False),
+        CatFrames(N=window, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], padding="same"),
+    )
+
+
+def history_dim(system, window: int, include_controls: bool = True) -> int:
+    """Length of h_t^N for ``system``."""
+    frame = system.state_dim + system.measurement_dim + (2 * system.control_dim if include_controls else 0)
+    return window * frame
+
+
+def with_window(env, window: int, include_controls: bool = True) -> TransformedEnv:
+    """Wrap ``env`` so that its observations carry the history window."""
+    return TransformedEnv(env, window_transform(window, include_controls))

@@ -1,0 +1,216 @@
+"""Noise models as torch distributions with generator-driven sampling.
+
+Every noise here is a vector distribution over ``dim`` independent or jointly Gaussian axes and
+offers what a simulator and a filter need: batched ``sample(shape, generator)`` that is
+reproducible from a ``torch.Generator``, ``log_prob`` (exact density, for the particle filter),
+``mean`` and ``covariance`` (what a Kalman-type filter uses as Q or R).
+
+Densities, means and variances come from ``torch.distributions``; sampling is written here
+because ``torch.distributions`` cannot draw from an explicit ``torch.Generator``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import distributions as D
+
+__all__ = [
+    "Noise",
+    "GaussianNoise",
+    "GaussianMixtureNoise",
+    "LaplaceNoise",
+    "OutlierLaplaceNoise",
+]
+
+
+def _as_tensor(value, dtype=torch.float32) -> torch.Tensor:
+    return torch.as_tensor(value, dtype=dtype).clone()
+
+
+class Noise:
+    """Common interface: a distribution over R^dim with generator-driven sampling."""
+
+    dim: int
+
+    def sample(self, shape=(), generator: torch.Generator | None = None) -> torch.Tensor:
+        """Draw ``[*shape, dim]`` samples."""
+        raise NotImplementedError
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        """Log-density of ``[..., dim]`` values, summed over the ``dim`` axes -> ``[...]``."""
+        raise NotImplementedError
+
+    @property
+    def mean(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    @property
+    def covariance(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def to(self, device) -> Noise:
+        """Move every tensor attribute to ``device`` (in place) and return self."""
+        for name, value in vars(self).items():
+            if isinstance(value, torch.Tensor):
+                setattr(self, name, value.to(device))
+        return self
+
+    def _device(self) -> torch.device:
+        return self.mean.device
+
+    def _shape(self, shape) -> tuple[int, ...]:
+        if isinstance(shape, int):
+            shape = (shape,)
+        return (*tuple(shape), self.dim)
+
+
+class GaussianNoise(Noise):
+    """Multivariate normal N(mean, cov); also used as a system's prior."""
+
+    def __init__(self, mean, covariance):
+        self.loc = _as_tensor(mean)
+        self.cov = _as_tensor(covariance)
+        self.dim = self.loc.shape[-1]
+        if self.cov.shape != (self.dim, self.dim):
+            raise ValueError(
+                f"covariance must be [{self.dim}, {self.dim}] to match the mean, got {tuple(self.cov.shape)}"
+            )
+        self.scale_tril = torch.linalg.cholesky(self.cov)
+
+    @classmethod
+    def diagonal(cls, mean, std) -> GaussianNoise:
+        std = _as_tensor(std)
+        return cls(mean, torch.diag(std**2))
+
+    def sample(self, shape=(), generator=None):
+        eps = torch.randn(self._shape(shape), generator=generator, device=self._device())
+        return self.loc + eps @ self.scale_tril.T
+
+    def log_prob(self, value):
+        return D.MultivariateNormal(self.loc, scale_tril=self.scale_tril).log_prob(value)
+
+    @property
+    def mean(self):
+        return self.loc
+
+    @property
+    def covariance(self):
+        return self.cov
+
+
+class GaussianMixtureNoise(Noise):
+    """Independent per-axis Gaussian mixture, scaled per axis.
+
+    Axis i is ``scale_i * z`` with ``z ~ sum_k w_k N(m_k, s_k^2)``; the component is drawn
+    independently per axis (which is why the covariance is diagonal). ``weights``, ``means`` and
+    ``stds`` are ``[K]`` (shared by all axes) or ``[dim, K]``.
+    """
+
+    def __init__(self, weights, means, stds, scale):
+        self.scale = _as_tensor(scale)
+        self.dim = self.scale.shape[-1]
+        w, m, s = (_as_tensor(v).expand(self.dim, -1).clone() for v in (weights, means, stds))
+        if not torch.allclose(w.sum(-1), torch.ones(())):
+            raise ValueError(f"mixture weights must sum to 1, got {w.sum(-1).tolist()}")
+        if (s <= 0).any() or (self.scale <= 0).any():
+            raise ValueError("mixture stds and axis scales must be positive")
+        self.weights, self.means, self.stds = w, m, s
+
+    def _dist(self) -> D.Distribution:
+        mix = D.Categorical(probs=self.weights)
+        comp = D.Normal(self.means * self.scale[:, None], self.stds * self.scale[:, None])
+        return D.Independent(D.MixtureSameFamily(mix, comp), 1)
+
+    def sample(self, shape=(), generator=None):
+        full = self._shape(shape)
+        device = self._device()
+        # Component index per axis by inverse CDF of the categorical weights.
+        u = torch.rand(full, generator=generator, device=device)
+        cdf = self.weights.cumsum(-1)
+        k = (u[..., None] > cdf).sum(-1).clamp_max(self.weights.shape[-1] - 1)
+        idx = torch.arange(self.dim, device=device).expand(full)
+        eps = torch.randn(full, generator=generator, device=device)
+        z = self.means[idx, k] + self.stds[idx, k] * eps
+        return z * self.scale
+
+    def log_prob(self, value):
+        return self._dist().log_prob(value)
+
+    @property
+    def mean(self):
+        return (self.weights * self.means).sum(-1) * self.scale
+
+    @property
+    def covariance(self):
+        second = (self.weights * (self.stds**2 + self.means**2)).sum(-1)
+        mean = (self.weights * self.means).sum(-1)
+        return torch.diag((second - mean**2) * self.scale**2)
+
+
+class LaplaceNoise(Noise):
+    """Independent zero-mean Laplace noise per channel with scale ``b`` (variance 2b²)."""
+
+    def __init__(self, scale, loc=0.0):
+        self.b = _as_tensor(scale)
+        self.dim = self.b.shape[-1]
+        self.loc = torch.broadcast_to(_as_tensor(loc), self.b.shape).clone()
+        if (self.b <= 0).any():
+            raise ValueError("Laplace scales must be positive")
+
+    def _laplace(self, value, shift=0.0):
+        return D.Laplace(self.loc + shift, self.b).log_prob(value)
+
+    def sample(self, shape=(), generator=None):
+        # Inverse CDF: b * sign(v) * -log(1 - 2|v|), v ~ U(-1/2, 1/2).
+        v = torch.rand(self._shape(shape), generator=generator, device=self._device()) - 0.5
+        return self.loc - self.b * v.sign() * torch.log1p(-2 * v.abs())
+
+    def log_prob(self, value):
+        return self._laplace(value).sum(-1)
+
+    @property
+    def mean(self):
+        return self.loc
+
+    @property
+    def covariance(self):
+        return torch.diag(2 * self.b**2)
+
+
+class OutlierLaplaceNoise(LaplaceNoise):
+    """Laplace noise plus, with probability ``p`` per channel and step, a gross error ±``k``·b.
+
+    The sign of the gross error is random, so the noise stays zero-mean; its density is the
+    three-component mixture (1−p)·Lap(0) + p/2·Lap(+kb) + p/2·Lap(−kb).
+    """
+
+    def __init__(self, scale, prob=0.05, magnitude=10.0):
+        super().__init__(scale)
+        if not 0.0 <= prob < 1.0:
+            raise ValueError(f"outlier probability must be in [0, 1), got {prob}")
+        self.prob = float(prob)
+        self.magnitude = float(magnitude)
+
+    def sample(self, shape=(), generator=None):
+        base = super().sample(shape, generator)
+        u = torch.rand(base.shape, generator=generator, device=base.device)
+        sign = torch.where(torch.rand(base.shape, generator=generator, device=base.device) < 0.5, -1.0, 1.0)
+        return base + (u < self.prob) * sign * self.magnitude * self.b
+
+    def log_prob(self, value):
+        offset = self.magnitude * self.b
+        p = self.prob
+        terms = torch.stack(
+            [
+                math.log1p(-p) + self._laplace(value),
+                math.log(p / 2) + self._laplace(value, offset) if p > 0 else self._laplace(value) - math.inf,
+                math.log(p / 2) + self._laplace(value, -offset) if p > 0 else self._laplace(value) - math.inf,
+            ]
+        )
+        return torch.logsumexp(terms, 0).sum(-1)
+
+    @property
+    def covariance(self):
+        return torch.diag(2 * self.b**2 + self.prob * (self.magnitude * self.b) ** 2)

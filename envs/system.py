@@ -1,0 +1,167 @@
+"""StochasticSystem: a discrete-time nonlinear system with noise, pure torch, no RL.
+
+Time convention (shared by ``simulate``, the env and every filter):
+
+* x_0 ~ prior is never measured; every filter starts from x̂_0 = prior mean (and P_0 = prior
+  covariance where it uses one).
+* For t = 1..T: x_t = f_true(x_{t-1}, u_{t-1}) + ξ_{t-1},  y_t = g_true(x_t, u_t) + ζ_t.
+* A filter's estimate x̂_t may use y_1..y_t and u_0..u_t.
+
+``f``/``g`` are the *nominal* model that model-based filters may call. The true per-episode
+dynamics may differ (scenario ``mismatch``): they read per-run parameters from ``params``.
+
+One episode's simulator state lives in a TensorDict ``sim`` of batch ``[runs]`` with at least
+``x`` (internal state), ``u`` (current control), ``t`` (step index) and ``params`` (per-run
+episode parameters), so that an env can reset a subset of runs by masked assignment.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+
+from envs.noise import GaussianNoise, Noise
+
+__all__ = ["StochasticSystem"]
+
+
+class StochasticSystem:
+    """Base class. Subclasses set the attributes below and implement the model methods."""
+
+    name: str = "system"
+    scenario: str = "nominal"
+    scenarios: tuple[str, ...] = ("nominal",)
+    dt: float
+    state_names: tuple[str, ...]
+    state_units: tuple[str, ...]
+    measurement_names: tuple[str, ...]
+    measurement_units: tuple[str, ...]
+    control_names: tuple[str, ...] = ()
+    prior: GaussianNoise
+    process_noise: Noise
+    measurement_noise: Noise
+    #: plausible range of every estimated state (the action spec of the filtering env)
+    state_low: torch.Tensor
+    state_high: torch.Tensor
+    #: typical error of a good filter per state; the env's default reward weights are 1/(n·s²)
+    error_scale: torch.Tensor
+    #: whether filters may call f and g (False for simulator-only systems such as veh14dof)
+    has_model: bool = True
+
+    # ----------------------------------------------------------------- dimensions
+    @property
+    def state_dim(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def measurement_dim(self) -> int:
+        return len(self.measurement_names)
+
+    @property
+    def control_dim(self) -> int:
+        return len(self.control_names)
+
+    # ----------------------------------------------------------------- nominal model
+    def f(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Noise-free nominal transition x_{t+1} = f(x_t, u_t), batched over leading dims."""
+        raise NotImplementedError(f"{self.name} offers no transition model to filters")
+
+    def g(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Noise-free nominal measurement y_t = g(x_t, u_t), batched over leading dims."""
+        raise NotImplementedError(f"{self.name} offers no measurement model to filters")
+
+    # ----------------------------------------------------------------- episode simulation
+    def sample_params(self, runs: int, generator: torch.Generator, device) -> TensorDict:
+        """Per-run episode parameters (control schedule, true model parameters)."""
+        return TensorDict({}, batch_size=[runs], device=device)
+
+    def control(self, t: torch.Tensor, params: TensorDict) -> torch.Tensor:
+        """Known control u_t for integer steps ``t`` ([runs]) -> [runs, control_dim]."""
+        return torch.zeros(*t.shape, self.control_dim, device=t.device)
+
+    def transition(self, x, u, params: TensorDict, generator) -> torch.Tensor:
+        """True noisy transition x_{t+1} = f_true(x_t, u_t) + ξ_t."""
+        return self.f(x, u) + self.process_noise.sample(x.shape[:-1], generator)
+
+    def measure(self, x, u, params: TensorDict, generator) -> torch.Tensor:
+        """True noisy measurement y_t = g_true(x_t, u_t) + ζ_t."""
+        return self.g(x, u) + self.measurement_noise.sample(x.shape[:-1], generator)
+
+    def truth(self, x: torch.Tensor) -> torch.Tensor:
+        """Estimated-state vector from the internal state (identity unless overridden)."""
+        return x
+
+    def reset_episode(self, runs: int, generator: torch.Generator, device="cpu") -> TensorDict:
+        """Draw ``runs`` new episodes at t = 0: parameters, x_0 ~ prior, u_0."""
+        params = self.sample_params(runs, generator, device)
+        t = torch.zeros(runs, dtype=torch.long, device=device)
+        x0 = self.prior.sample((runs,), generator)
+        return TensorDict(
+            {"x": x0, "t": t, "u": self.control(t, params), "params": params},
+            batch_size=[runs],
+            device=device,
+        )
+
+    def advance(self, sim: TensorDict, generator: torch.Generator) -> tuple[TensorDict, TensorDict]:
+        """One step t -> t+1. Returns the new ``sim`` and what is observed at t+1.
+
+        The observation TensorDict holds ``state`` (truth, hidden from filters), ``measurement``
+        y_{t+1}, ``control`` u_{t+1} and ``prev_control`` u_t.
+        """
+        params = sim["params"]
+        x_next = self.transition(sim["x"], sim["u"], params, generator)
+        t_next = sim["t"] + 1
+        u_next = self.control(t_next, params)
+        y_next = self.measure(x_next, u_next, params, generator)
+        new_sim = TensorDict(
+            {"x": x_next, "t": t_next, "u": u_next, "params": params}, batch_size=sim.batch_size
+        )
+        obs = TensorDict(
+            {
+                "state": self.truth(x_next),
+                "measurement": y_next,
+                "control": u_next,
+                "prev_control": sim["u"],
+            },
+            batch_size=sim.batch_size,
+        )
+        return new_sim, obs
+
+    @torch.no_grad()
+    def simulate(self, runs: int, steps: int, seed: int, device="cpu") -> TensorDict:
+        """Simulate ``runs`` independent episodes of ``steps`` measured steps (t = 1..steps).
+
+        Returns a TensorDict of batch ``[runs, steps]`` with ``state``, ``measurement``,
+        ``control`` and ``prev_control``; the same seed gives the same data.
+        """
+        if runs < 1 or steps < 1:
+            raise ValueError(f"simulate needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
+        generator = torch.Generator(device=device).manual_seed(int(seed))
+        sim = self.reset_episode(runs, generator, device)
+        frames = []
+        for _ in range(steps):
+            sim, obs = self.advance(sim, generator)
+            frames.append(obs)
+        return torch.stack(frames, dim=1)
+
+    # ----------------------------------------------------------------- helpers
+    def to(self, device) -> StochasticSystem:
+        """Move noises and tensor attributes to ``device`` (in place)."""
+        for noise in (self.prior, self.process_noise, self.measurement_noise):
+            noise.to(device)
+        for name, value in vars(self).items():
+            if isinstance(value, torch.Tensor):
+                setattr(self, name, value.to(device))
+        return self
+
+    def describe(self) -> dict:
+        """Plain-data description (for reports and checkpoints)."""
+        return {
+            "name": self.name,
+            "scenario": self.scenario,
+            "dt": self.dt,
+            "states": list(self.state_names),
+            "units": list(self.state_units),
+            "measurements": list(self.measurement_names),
+            "controls": list(self.control_names),
+        }

@@ -1,0 +1,163 @@
+"""The 2-DOF single-track vehicle of Experiment I (shared/specs/veh2dof.md).
+
+State x = [β, r] (side slip, yaw rate), control u = δ_f (front steer, known), measurement
+y = [a_y, r] + ζ. Magic-Formula tyres on both axles, explicit Euler at Δτ = 0.02 s,
+Gaussian-mixture process noise, Laplace measurement noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict
+
+from envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
+from envs.system import StochasticSystem
+
+__all__ = ["Vehicle2DOFParams", "Vehicle2DOF"]
+
+
+@dataclass
+class Vehicle2DOFParams:
+    """Every number of the spec, each overridable through ``make_system(..., name=value)``."""
+
+    m: float = 1412.0  # kg
+    Iz: float = 1536.7  # kg m^2
+    lf: float = 1.06  # m
+    lr: float = 1.85  # m
+    vx: float = 20.0  # m/s
+    g: float = 9.81  # m/s^2
+    mu: float = 0.9  # road friction (nominal)
+    B: float = 10.0  # Magic-Formula stiffness factor (nominal)
+    C: float = 1.3
+    E: float = 0.97
+    dt: float = 0.02  # s
+    # steering manoeuvre δ_f = A sin(2π t Δτ / P + φ)
+    steer_amplitude_deg: tuple[float, float] = (2.0, 3.5)
+    steer_period_s: tuple[float, float] = (3.0, 6.0)
+    # process noise: per-axis scale σ_ξ and the mixture in units of σ_ξ
+    process_scale: tuple[float, float] = (0.002, 0.005)
+    mixture_weights: tuple[float, float] = (0.7, 0.3)
+    mixture_means: tuple[float, float] = (-9.0 / 7.0, 3.0)
+    mixture_stds: tuple[float, float] = (1.0, 2.0)
+    # measurement noise: Laplace scale b per channel [a_y, r]
+    measurement_scale: tuple[float, float] = (1.5, 0.1)
+    outlier_prob: float = 0.05
+    outlier_magnitude: float = 10.0
+    # prior x_0 ~ N(0, diag(prior_std²))
+    prior_std: tuple[float, float] = (0.02, 0.1)
+    # mismatch scenario: true μ and B drawn per episode
+    mismatch_mu: tuple[float, float] = (0.7, 1.0)
+    mismatch_B: tuple[float, float] = (8.0, 12.0)
+
+
+def _uniform(lo_hi, runs, generator, device) -> torch.Tensor:
+    lo, hi = lo_hi
+    return lo + (hi - lo) * torch.rand(runs, generator=generator, device=device)
+
+
+class Vehicle2DOF(StochasticSystem):
+    """2-DOF lateral vehicle with scenarios ``nominal``, ``mismatch`` and ``outliers``."""
+
+    name = "veh2dof"
+    scenarios = ("nominal", "mismatch", "outliers")
+    state_names = ("beta", "yaw_rate")
+    state_units = ("rad", "rad/s")
+    measurement_names = ("lateral_acceleration", "yaw_rate")
+    measurement_units = ("m/s^2", "rad/s")
+    control_names = ("front_steer",)
+
+    def __init__(self, scenario: str = "nominal", params: Vehicle2DOFParams | None = None):
+        self.scenario = scenario
+        self.p = p = params or Vehicle2DOFParams()
+        self.dt = p.dt
+        self.prior = GaussianNoise.diagonal([0.0, 0.0], p.prior_std)
+        self.process_noise = GaussianMixtureNoise(
+            p.mixture_weights, p.mixture_means, p.mixture_stds, p.process_scale
+        )
+        if scenario == "outliers":
+            self.measurement_noise = OutlierLaplaceNoise(
+                p.measurement_scale, p.outlier_prob, p.outlier_magnitude
+            )
+        else:
+            self.measurement_noise = LaplaceNoise(p.measurement_scale)
+        self.state_low = torch.tensor([-0.3, -1.5])
+        self.state_high = torch.tensor([0.3, 1.5])
+        # About the RMSE of a near-optimal particle filter on the nominal scenario (spec).
+        self.error_scale = torch.tensor([0.01, 0.025])
+        l = p.lf + p.lr
+        self.Fzf = p.m * p.g * p.lr / l
+        self.Fzr = p.m * p.g * p.lf / l
+
+    # ----------------------------------------------------------------- physics
+    def _tyre(self, alpha, Fz, mu, B):
+        """Magic-Formula lateral force F_y(α, F_z) = −μ F_z sin(C atan(Bα − E(Bα − atan(Bα))))."""
+        p = self.p
+        Ba = B * alpha
+        return -mu * Fz * torch.sin(p.C * torch.atan(Ba - p.E * (Ba - torch.atan(Ba))))
+
+    def _forces(self, x, u, mu, B):
+        p = self.p
+        beta, r = x[..., 0], x[..., 1]
+        delta = u[..., 0]
+        alpha_f = beta + p.lf * r / p.vx - delta
+        alpha_r = beta - p.lr * r / p.vx
+        Fyf = self._tyre(alpha_f, self.Fzf, mu, B)
+        Fyr = self._tyre(alpha_r, self.Fzr, mu, B)
+        return Fyf * torch.cos(delta), Fyr
+
+    def derivative(self, x, u, mu=None, B=None):
+        """Continuous dynamics [β̇, ṙ]; μ and B default to the nominal model."""
+        p = self.p
+        mu = p.mu if mu is None else mu
+        B = p.B if B is None else B
+        Fyf_c, Fyr = self._forces(x, u, mu, B)
+        beta_dot = (Fyf_c + Fyr) / (p.m * p.vx) - x[..., 1]
+        r_dot = (p.lf * Fyf_c - p.lr * Fyr) / p.Iz
+        return torch.stack([beta_dot, r_dot], -1)
+
+    def lateral_acceleration(self, x, u, mu=None, B=None):
+        p = self.p
+        mu = p.mu if mu is None else mu
+        B = p.B if B is None else B
+        Fyf_c, Fyr = self._forces(x, u, mu, B)
+        return (Fyf_c + Fyr) / p.m
+
+    def f(self, x, u):
+        return x + self.dt * self.derivative(x, u)
+
+    def g(self, x, u):
+        return torch.stack([self.lateral_acceleration(x, u), x[..., 1]], -1)
+
+    # ----------------------------------------------------------------- episodes
+    def sample_params(self, runs, generator, device):
+        p = self.p
+        amplitude = torch.deg2rad(_uniform(p.steer_amplitude_deg, runs, generator, device))
+        period = _uniform(p.steer_period_s, runs, generator, device)
+        phase = _uniform((0.0, 2 * math.pi), runs, generator, device)
+        if self.scenario == "mismatch":
+            mu = _uniform(p.mismatch_mu, runs, generator, device)
+            B = _uniform(p.mismatch_B, runs, generator, device)
+        else:
+            mu = torch.full((runs,), p.mu, device=device)
+            B = torch.full((runs,), p.B, device=device)
+        return TensorDict(
+            {"amplitude": amplitude, "period": period, "phase": phase, "mu": mu, "B": B},
+            batch_size=[runs],
+            device=device,
+        )
+
+    def control(self, t, params):
+        angle = 2 * math.pi * t * self.dt / params["period"] + params["phase"]
+        return (params["amplitude"] * torch.sin(angle)).unsqueeze(-1)
+
+    def transition(self, x, u, params, generator):
+        x_dot = self.derivative(x, u, params["mu"], params["B"])
+        return x + self.dt * x_dot + self.process_noise.sample(x.shape[:-1], generator)
+
+    def measure(self, x, u, params, generator):
+        a_y = self.lateral_acceleration(x, u, params["mu"], params["B"])
+        clean = torch.stack([a_y, x[..., 1]], -1)
+        return clean + self.measurement_noise.sample(x.shape[:-1], generator)
