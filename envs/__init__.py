@@ -4,9 +4,13 @@ from envs.linear import LinearOscillator, LinearParams
 from envs.registry import SYSTEMS, make_system, register_system
 from envs.system import StochasticSystem
 from envs.vehicle2dof import Vehicle2DOF, Vehicle2DOFParams
+from envs.vehicle14dof import Vehicle14DOF, Vehicle14DOFParams
 
 register_system("veh2dof", Vehicle2DOF, Vehicle2DOFParams)
 register_system("linear", LinearOscillator, LinearParams)
+register_system("veh14dof", Vehicle14DOF, Vehicle14DOFParams)
+
+from envs import gym_env  # noqa: E402, F401  (registers gymnasium id daof/Veh2DOF-v0)
 
 __all__ = ["SYSTEMS", "StochasticSystem", "make_system", "register_system", "make_env"]
 

@@ -1,0 +1,101 @@
+"""The study's figures (PNG): one run's states and errors, per-run RMSE, learning curves, windows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+
+__all__ = ["plot_one_run", "plot_per_run_boxes", "plot_learning_curves", "plot_window_study"]
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
+    """Estimated vs true state (top row) and error over time (bottom row), per state, all filters."""
+    s = study.system
+    names = names or list(study.estimates)
+    truth = study.data["state"][run]
+    t = torch.arange(1, truth.shape[0] + 1) * s.dt
+    fig, axes = plt.subplots(2, s.state_dim, figsize=(6 * s.state_dim, 6.5), sharex=True, squeeze=False)
+    for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
+        top, bottom = axes[0, j], axes[1, j]
+        top.plot(t, truth[:, j], color="black", lw=1.6, label="true")
+        for name in names:
+            est = study.estimates[name][run, :, j]
+            top.plot(t, est, lw=0.9, label=name)
+            bottom.plot(t, est - truth[:, j], lw=0.8, label=name)
+        top.set_ylabel(f"{state} [{unit}]")
+        bottom.set_ylabel(f"error {state} [{unit}]")
+        bottom.set_xlabel("time [s]")
+        bottom.axhline(0, color="black", lw=0.6)
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"{s.name} ({s.scenario}), run {run}: estimates and errors")
+    return _save(fig, path)
+
+
+def plot_per_run_boxes(study, path: Path, names=None) -> Path:
+    """Box plot of per-run RMSE, one panel per state (log scale)."""
+    s = study.system
+    names = names or list(study.results)
+    fig, axes = plt.subplots(1, s.state_dim, figsize=(max(6, 1.1 * len(names)) * s.state_dim / 1.4, 4), squeeze=False)
+    for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
+        ax = axes[0, j]
+        values = [[row[j] for row in study.results[n].per_run_rmse] for n in names]
+        ax.boxplot(values, showfliers=True)
+        ax.set_xticks(range(1, len(names) + 1), names, rotation=35, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"per-run RMSE {state} [{unit}]")
+        ax.grid(alpha=0.3, axis="y")
+    fig.suptitle(f"{s.name} ({s.scenario}): per-run RMSE over {study.runs} runs")
+    return _save(fig, path)
+
+
+def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path, references=None) -> Path:
+    """Validation RMSE per state against training samples / env steps for every learned filter."""
+    fig, axes = plt.subplots(1, len(state_names), figsize=(5.5 * len(state_names), 3.8), squeeze=False)
+    for j, state in enumerate(state_names):
+        ax = axes[0, j]
+        for name, history in curves.items():
+            if history:
+                ax.plot([h["frames"] for h in history], [h[f"rmse_{state}"] for h in history], marker=".", label=name)
+        for label, values in (references or {}).items():
+            ax.axhline(values[j], ls="--", lw=0.9, color="gray")
+            ax.text(ax.get_xlim()[0], values[j], f" {label}", fontsize=7, color="gray", va="bottom")
+        ax.set_yscale("log")
+        ax.set_xscale("symlog", linthresh=1e4)
+        ax.set_xlabel("training samples (env steps)")
+        ax.set_ylabel(f"validation RMSE {state}")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("learning curves (validation set)")
+    return _save(fig, path)
+
+
+def plot_window_study(rows: list[dict], state_names, path: Path) -> Path:
+    """RMSE per state and cost per estimate against the window length N."""
+    windows = [r["window"] for r in rows]
+    fig, axes = plt.subplots(1, len(state_names) + 1, figsize=(4.5 * (len(state_names) + 1), 3.6), squeeze=False)
+    for j, state in enumerate(state_names):
+        axes[0, j].plot(windows, [r["rmse"][j] for r in rows], marker="o")
+        axes[0, j].set_ylabel(f"RMSE {state}")
+    costs = [r["cost_ms"] for r in rows]
+    axes[0, -1].plot(windows, costs, marker="o", color="C3")
+    axes[0, -1].set_ylabel("cost per estimate [ms]")
+    for ax in axes[0]:
+        ax.set_xlabel("window N")
+        ax.set_xticks(windows)
+        ax.grid(alpha=0.3)
+    fig.suptitle("sliding-window study (DAOF-v1)")
+    return _save(fig, path)

@@ -1,0 +1,102 @@
+"""Run training recipes as parallel subprocesses, reusing finished runs and resuming broken ones.
+
+A job is one recipe invocation with Hydra overrides and its own output directory. A job whose
+``summary.json`` records at least the requested number of frames is finished and reused; one
+with a ``checkpoint.pt`` is resumed from it; anything else starts fresh. Progress: the latest
+progress-bar line of every running job is printed periodically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["TrainingJob", "run_jobs"]
+
+
+@dataclass
+class TrainingJob:
+    """One training run: ``python script overrides... output_dir=out``."""
+
+    name: str
+    script: Path
+    output_dir: Path
+    total_frames: int
+    overrides: list[str] = field(default_factory=list)
+
+    @property
+    def summary_path(self) -> Path:
+        return self.output_dir / "summary.json"
+
+    def finished(self) -> bool:
+        if not self.summary_path.is_file() or not (self.output_dir / "best.pt").is_file():
+            return False
+        return json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
+
+    def command(self) -> list[str]:
+        cmd = [sys.executable, str(self.script), *self.overrides]
+        cmd += [f"collector.total_frames={self.total_frames}", f"output_dir={self.output_dir}"]
+        checkpoint = self.output_dir / "checkpoint.pt"
+        if checkpoint.is_file():
+            cmd.append(f"resume={checkpoint}")
+        return cmd
+
+    def summary(self) -> dict:
+        return json.loads(self.summary_path.read_text())
+
+
+def _last_progress(log: Path) -> str:
+    try:
+        tail = log.read_bytes()[-4000:].decode(errors="replace")
+    except OSError:
+        return ""
+    pieces = [p.strip() for p in tail.replace("\r", "\n").split("\n") if p.strip()]
+    bars = [p for p in pieces if "fr/s" in p or "fr]" in p or "%|" in p]
+    return (bars or pieces or [""])[-1][:160]
+
+
+def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every: float = 60.0) -> None:
+    """Run the unfinished jobs, ``parallel`` at a time; raise if any of them fails."""
+    pending = []
+    for job in jobs:
+        if job.finished():
+            log(f"  {job.name}: finished earlier, reusing {job.output_dir}")
+        else:
+            pending.append(job)
+    running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
+    failed = []
+    last_status = time.monotonic()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    while pending or running:
+        while pending and len(running) < parallel:
+            job = pending.pop(0)
+            job.output_dir.mkdir(parents=True, exist_ok=True)
+            log_path = job.output_dir / "train.log"
+            fh = log_path.open("ab")
+            resumed = " (resuming)" if any("resume=" in c for c in job.command()) else ""
+            log(f"  {job.name}: training{resumed}, log {log_path}")
+            proc = subprocess.Popen(job.command(), stdout=fh, stderr=subprocess.STDOUT, env=env)
+            running.append((job, proc, log_path, fh))
+        time.sleep(2.0)
+        for entry in list(running):
+            job, proc, log_path, fh = entry
+            if proc.poll() is None:
+                continue
+            fh.close()
+            running.remove(entry)
+            if proc.returncode == 0 and job.finished():
+                log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
+            else:
+                failed.append(job.name)
+                log(f"  {job.name}: FAILED (exit {proc.returncode}); see {log_path}")
+        if running and time.monotonic() - last_status > status_every:
+            last_status = time.monotonic()
+            for job, _, log_path, _ in running:
+                log(f"  {job.name}: {_last_progress(log_path)}")
+    if failed:
+        raise RuntimeError(f"training failed for {failed}; rerun the same command to resume")

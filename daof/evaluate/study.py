@@ -1,0 +1,140 @@
+"""Run the Monte Carlo study: simulate once, replay to every filter, collect the metrics.
+
+The data set is generated once from the evaluation seed and every filter sees exactly the same
+true states, measurements and controls. Each filter's result (metrics and estimates) is cached
+in ``cache_dir`` as soon as it is finished, so an interrupted study restarts where it stopped.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
+from daof.evaluate.timing import cost_per_estimate, threads, throughput
+from envs.system import StochasticSystem
+
+__all__ = ["FilterResult", "Study", "run_study"]
+
+ORACLE = "PF-oracle"
+
+
+@dataclass
+class FilterResult:
+    """One row of the study (the fields of results.json)."""
+
+    rmse: list[float]
+    per_run_rmse: list[list[float]]
+    cost_ms: float | None
+    threads: int
+    throughput_per_s: float
+    diverged: int = 0
+    repairs: int = 0
+    ratio_to_oracle: list[float] | None = None
+    wall_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class Study:
+    """The data, every filter's estimates and results, and what identifies the study."""
+
+    system: StochasticSystem
+    runs: int
+    steps: int
+    seed: int
+    data: TensorDict
+    results: dict[str, FilterResult]
+    estimates: dict[str, torch.Tensor]
+
+    def to_json(self) -> dict:
+        s = self.system
+        return {
+            "system": s.name,
+            "scenario": s.scenario,
+            "runs": self.runs,
+            "steps": self.steps,
+            "seed": self.seed,
+            "states": list(s.state_names),
+            "units": list(s.state_units),
+            "filters": {name: asdict(r) for name, r in self.results.items()},
+        }
+
+
+def _cache_path(cache_dir: Path, name: str) -> Path:
+    return cache_dir / (re.sub(r"[^A-Za-z0-9_.=-]+", "_", name) + ".pt")
+
+
+def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: bool) -> tuple[FilterResult, torch.Tensor]:
+    rate, estimates, wall = throughput(filt, data)
+    truth = data["state"]
+    cost = None
+    if measure_cost:
+        with threads(timing_threads):
+            cost = cost_per_estimate(filt, data)
+    stats = getattr(filt, "stats", {}) or {}
+    result = FilterResult(
+        rmse=pooled_rmse(estimates, truth).tolist(),
+        per_run_rmse=per_run_rmse(estimates, truth).tolist(),
+        cost_ms=cost,
+        threads=timing_threads,
+        throughput_per_s=rate,
+        repairs=int(stats.get("repairs", 0)),
+        wall_s=wall,
+        extra={k: v for k, v in stats.items() if k != "repairs" and isinstance(v, (int, float, str))},
+    )
+    return result, estimates.float()
+
+
+def run_study(
+    system: StochasticSystem,
+    filters: dict,
+    runs: int,
+    steps: int,
+    seed: int,
+    timing_threads: int = 1,
+    measure_cost: bool = True,
+    cache_dir: str | Path | None = None,
+    log=print,
+) -> Study:
+    """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set."""
+    data = system.simulate(runs, steps, seed)
+    key = {"system": system.name, "scenario": system.scenario, "runs": runs, "steps": steps, "seed": seed}
+    cache = Path(cache_dir) if cache_dir is not None else None
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+    results: dict[str, FilterResult] = {}
+    estimates: dict[str, torch.Tensor] = {}
+    for i, (name, filt) in enumerate(filters.items(), 1):
+        path = _cache_path(cache, name) if cache is not None else None
+        if path is not None and path.is_file():
+            blob = torch.load(path, weights_only=False)
+            if blob["key"] == key:
+                results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
+                log(f"[{i}/{len(filters)}] {name}: reused finished result ({path})")
+                continue
+        log(f"[{i}/{len(filters)}] {name}: filtering {runs} runs x {steps} steps ...")
+        result, est = _evaluate_one(filt, data, timing_threads, measure_cost)
+        results[name], estimates[name] = result, est
+        rmse = ", ".join(f"{v:.4g}" for v in result.rmse)
+        cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"
+        log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s")
+        if path is not None:
+            torch.save({"key": key, "result": asdict(result), "estimates": est}, path)
+    _add_oracle_metrics(results)
+    return Study(system, runs, steps, seed, data, results, estimates)
+
+
+def _add_oracle_metrics(results: dict[str, FilterResult]) -> None:
+    """Ratio to PF-oracle per state and diverged-run counts (10× the oracle's RMSE)."""
+    oracle = results.get(ORACLE)
+    oracle_rmse = torch.tensor(oracle.rmse, dtype=torch.float64) if oracle is not None else None
+    for r in results.values():
+        run_rmse = torch.tensor(r.per_run_rmse, dtype=torch.float64)
+        r.diverged = count_diverged(run_rmse, oracle_rmse)
+        if oracle_rmse is not None:
+            r.ratio_to_oracle = (torch.tensor(r.rmse, dtype=torch.float64) / oracle_rmse).tolist()

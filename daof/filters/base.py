@@ -1,0 +1,67 @@
+"""The common interface of every filter: ``run(data) -> estimates [runs, steps, state_dim]``.
+
+A filter sees only what a real filter would: y_t ("measurement"), u_{t-1} ("prev_control") and
+u_t ("control") for t = 1..T, plus the model if it is model-based. It starts from the prior
+x̂_0 = prior mean (``envs.system`` time convention); the truth ("state") is never read.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from envs.system import StochasticSystem
+
+__all__ = ["Filter"]
+
+
+class Filter:
+    """Base class. Subclasses implement ``_run`` on validated tensors and fill ``self.stats``."""
+
+    name: str = "filter"
+
+    def __init__(self, system: StochasticSystem):
+        self.system = system
+        #: diagnostics of the last ``run`` (e.g. ``{"repairs": 0, "diverged": 0}``)
+        self.stats: dict = {}
+
+    def run(self, data: TensorDictBase) -> torch.Tensor:
+        """Estimates x̂_t for t = 1..T of every run -> ``[runs, steps, state_dim]`` on data's device."""
+        y, u_prev, u = self.validate(data)
+        self.stats = {}
+        return self._run(y, u_prev, u)
+
+    def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def validate(self, data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Check shapes, dtypes and finiteness of the inputs once; raise ValueError otherwise.
+
+        Measurements are not required to be finite (a later scenario drops measurements as NaN).
+        """
+        s = self.system
+        dims = {"measurement": s.measurement_dim, "prev_control": s.control_dim, "control": s.control_dim}
+        out = []
+        for key, dim in dims.items():
+            if key not in data.keys():
+                raise ValueError(f"{self.name}: data has no {key!r} entry (keys: {list(data.keys())})")
+            value = data.get(key)
+            if not isinstance(value, torch.Tensor) or value.ndim != 3 or value.shape[-1] != dim:
+                shape = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+                raise ValueError(f"{self.name}: {key!r} must be [runs, steps, {dim}], got {shape}")
+            if not value.is_floating_point():
+                raise ValueError(f"{self.name}: {key!r} must be a float tensor, got {value.dtype}")
+            if out and value.shape[:2] != out[0].shape[:2]:
+                raise ValueError(
+                    f"{self.name}: {key!r} has [runs, steps] = {tuple(value.shape[:2])}, "
+                    f"measurement has {tuple(out[0].shape[:2])}"
+                )
+            if key != "measurement" and not torch.isfinite(value).all():
+                raise ValueError(f"{self.name}: {key!r} contains non-finite values")
+            out.append(value)
+        if out[0].shape[0] < 1 or out[0].shape[1] < 1:
+            raise ValueError(f"{self.name}: data needs at least one run and one step, got {tuple(out[0].shape)}")
+        return out[0], out[1], out[2]
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, system={self.system.name!r})"

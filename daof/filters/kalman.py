@@ -1,0 +1,316 @@
+"""Kalman-type baselines on filterpy: ``KalmanFilter`` (linear), ``EKF`` and ``UKF`` (nonlinear).
+
+Each filter gets the system's nominal f and g, Q = process-noise covariance, R = measurement-noise
+covariance and starts from x̂_0 = prior mean, P_0 = prior covariance; for t = 1..T it predicts with
+u_{t-1} and updates with y_t = g(x_t, u_t) (``envs.system`` time convention). filterpy works in
+float64; ``dtype`` only sets the dtype of the returned estimates.
+
+Two numerical rules from specs/benchmark.md: a covariance that is no longer positive definite is
+repaired (symmetrise, add jitter until Cholesky succeeds) and counted in ``stats["repairs"]``; a run
+whose estimate becomes non-finite (or whose algebra fails) is kept, its remaining estimates are NaN,
+and it is counted in ``stats["diverged"]`` — it never stops the study.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
+from filterpy.kalman import KalmanFilter as _FilterpyKF
+
+from daof.filters.base import Filter
+from envs.system import StochasticSystem
+
+__all__ = ["CovarianceRepair", "NumpyModel", "TorchModel", "make_model", "KalmanFilter", "EKF", "UKF"]
+
+
+# ----------------------------------------------------------------------------- models
+class TorchModel:
+    """f, g and their Jacobians F = ∂f/∂x, H = ∂g/∂x from the system's torch functions (float64).
+
+    Works for every system; each call converts numpy -> torch -> numpy, and the Jacobians come from
+    ``torch.func.jacrev``.
+    """
+
+    def __init__(self, system: StochasticSystem):
+        self.system = copy.deepcopy(system).to("cpu").to(torch.float64)
+        self._F = torch.func.jacrev(self.system.f, argnums=0)
+        self._H = torch.func.jacrev(self.system.g, argnums=0)
+
+    def _call(self, fn, x, u) -> np.ndarray:
+        with torch.no_grad():
+            return fn(torch.from_numpy(np.asarray(x, np.float64)), torch.from_numpy(u)).numpy()
+
+    def f(self, x, u):
+        return self._call(self.system.f, x, u)
+
+    def g(self, x, u):
+        return self._call(self.system.g, x, u)
+
+    def F(self, x, u):
+        return self._call(self._F, x, u)
+
+    def H(self, x, u):
+        return self._call(self._H, x, u)
+
+
+class NumpyModel:
+    """A numpy transcription of a system's nominal f and g, batched over leading dims.
+
+    The functions are complex-analytic, so the Jacobians come from the complex step
+    ∂f/∂x_j = Im f(x + i h e_j) / h, exact to rounding (no subtractive cancellation).
+    ``tests/test_classical_filters.py`` pins f, g, F, H against the torch model.
+    """
+
+    step = 1e-30  # complex-step size; any tiny h works, the result does not depend on it
+
+    def __init__(self, f, g, state_dim: int):
+        self.f, self.g, self.n = f, g, state_dim
+        self._probe = 1j * self.step * np.eye(state_dim)
+
+    def _jacobian(self, fn, x, u) -> np.ndarray:
+        # row j of the batch is x + i h e_j -> column j of the Jacobian
+        return fn(x + self._probe, u).imag.T / self.step
+
+    def F(self, x, u):
+        return self._jacobian(self.f, x, u)
+
+    def H(self, x, u):
+        return self._jacobian(self.g, x, u)
+
+
+def _veh2dof_numpy(system) -> NumpyModel:
+    """specs/veh2dof.md: α_f, α_r, Magic-Formula F_y, explicit Euler f, g = [a_y, r]."""
+    p, Fzf, Fzr, dt = system.p, system.Fzf, system.Fzr, system.dt
+
+    def tyre(alpha, Fz):
+        Ba = p.B * alpha
+        return -p.mu * Fz * np.sin(p.C * np.arctan(Ba - p.E * (Ba - np.arctan(Ba))))
+
+    def forces(x, u):
+        beta, r, delta = x[..., 0], x[..., 1], u[..., 0]
+        Fyf = tyre(beta + p.lf * r / p.vx - delta, Fzf)
+        Fyr = tyre(beta - p.lr * r / p.vx, Fzr)
+        return Fyf * np.cos(delta), Fyr
+
+    def f(x, u):
+        Fyf_c, Fyr = forces(x, u)
+        beta_dot = (Fyf_c + Fyr) / (p.m * p.vx) - x[..., 1]
+        r_dot = (p.lf * Fyf_c - p.lr * Fyr) / p.Iz
+        return x + dt * np.stack([beta_dot, r_dot], -1)
+
+    def g(x, u):
+        Fyf_c, Fyr = forces(x, u)
+        return np.stack([(Fyf_c + Fyr) / p.m, x[..., 1]], -1)
+
+    return NumpyModel(f, g, system.state_dim)
+
+
+def _linear_numpy(system) -> NumpyModel:
+    """x_{t+1} = A x_t + B u_t, y_t = C x_t with the system's own (float32-valued) matrices."""
+    A, B, C = (m.double().cpu().numpy() for m in (system.A, system.B, system.C))
+    return NumpyModel(lambda x, u: x @ A.T + u @ B.T, lambda x, u: x @ C.T, system.state_dim)
+
+
+_NUMPY_MODELS = {"veh2dof": _veh2dof_numpy, "linear": _linear_numpy}
+
+
+def make_model(system: StochasticSystem, kind: str = "auto"):
+    """``"numpy"`` (a transcription, where one exists), ``"torch"`` (any system) or ``"auto"``.
+
+    ``auto`` prefers numpy: on veh2dof one f call costs ~10 µs in numpy against ~100 µs through
+    torch on a tiny tensor (measured by ``benchmarks/bench_classical.py --models``).
+    """
+    if kind not in ("auto", "numpy", "torch"):
+        raise ValueError(f"model must be 'auto', 'numpy' or 'torch', got {kind!r}")
+    if kind != "torch" and system.name in _NUMPY_MODELS:
+        return _NUMPY_MODELS[system.name](system)
+    if kind == "numpy":
+        raise ValueError(f"no numpy model for system {system.name!r}; use model='torch'")
+    return TorchModel(system)
+
+
+# ----------------------------------------------------------------------------- repair
+class CovarianceRepair:
+    """Makes a covariance positive definite again the way practitioners do, and counts it.
+
+    Symmetrise, shift the spectrum to just above zero, then multiply the jitter by 10 until a
+    Cholesky factorisation succeeds. ``jitter`` is relative to the largest diagonal entry.
+    """
+
+    def __init__(self, jitter: float = 1e-9):
+        self.jitter = jitter
+        self.count = 0
+
+    def __call__(self, P: np.ndarray) -> np.ndarray:
+        try:
+            np.linalg.cholesky(P)
+            return P
+        except np.linalg.LinAlgError:
+            pass
+        if not np.isfinite(P).all():
+            raise FloatingPointError("covariance is not finite")
+        P = 0.5 * (P + P.T)
+        eye = np.eye(P.shape[0])
+        scale = max(float(np.abs(np.diag(P)).max()), np.finfo(np.float64).tiny)
+        jitter = max(-float(np.linalg.eigvalsh(P).min()), 0.0) + self.jitter * scale
+        while True:
+            try:
+                np.linalg.cholesky(P + jitter * eye)
+                break
+            except np.linalg.LinAlgError:
+                jitter *= 10.0
+        self.count += 1
+        return P + jitter * eye
+
+    def sqrt(self, P: np.ndarray) -> np.ndarray:
+        """Upper-triangular U with Uᵀ U = P (filterpy's sigma-point convention), repairing P first."""
+        try:
+            return np.linalg.cholesky(P).T
+        except np.linalg.LinAlgError:
+            return np.linalg.cholesky(self(P)).T
+
+
+# ----------------------------------------------------------------------------- filters
+class _KalmanBase(Filter):
+    """Shared loop: per run, reset to the prior; per step, repair P, predict(u_{t-1}), update(y_t)."""
+
+    def __init__(self, system: StochasticSystem, dtype: torch.dtype = torch.float32, jitter: float = 1e-9):
+        super().__init__(system)
+        self.dtype = dtype
+        self.repair = CovarianceRepair(jitter)
+        self.Q = system.process_noise.covariance.double().cpu().numpy()
+        self.R = system.measurement_noise.covariance.double().cpu().numpy()
+        self.x0 = system.prior.mean.double().cpu().numpy()
+        #: P_0; tests may overwrite it to force the repair path
+        self.P0 = system.prior.covariance.double().cpu().numpy()
+
+    def _make(self):
+        """A fresh filterpy filter at the prior."""
+        raise NotImplementedError
+
+    def _step(self, kf, y, u_prev, u) -> None:
+        raise NotImplementedError
+
+    def _run(self, y, u_prev, u):
+        device = y.device
+        y, u_prev, u = (v.detach().double().cpu().numpy() for v in (y, u_prev, u))
+        runs, steps = y.shape[:2]
+        out = np.full((runs, steps, self.system.state_dim), np.nan)
+        self.repair.count = 0
+        diverged = 0
+        for r in range(runs):
+            kf = self._make()
+            yr, upr, ur = y[r], u_prev[r], u[r]
+            try:
+                for t in range(steps):
+                    kf.P = self.repair(kf.P)
+                    self._step(kf, yr[t], upr[t], ur[t])
+                    x = kf.x.reshape(-1)
+                    if not np.isfinite(x).all():
+                        raise FloatingPointError("non-finite estimate")
+                    out[r, t] = x
+            except (FloatingPointError, np.linalg.LinAlgError, ValueError):
+                diverged += 1  # the rest of this run stays NaN
+        self.stats = {"repairs": self.repair.count, "diverged": diverged}
+        return torch.from_numpy(out).to(device=device, dtype=self.dtype)
+
+
+class KalmanFilter(_KalmanBase):
+    """The exact Kalman filter of a linear-Gaussian system x_{t+1} = A x_t + B u_t + w, y = C x + v."""
+
+    name = "KF"
+
+    def __init__(self, system, dtype=torch.float32, jitter=1e-9):
+        if not all(hasattr(system, m) for m in ("A", "B", "C")):
+            raise ValueError(f"KalmanFilter needs a linear system with A, B, C; {system.name!r} has none")
+        super().__init__(system, dtype, jitter)
+        self.A, self.B, self.C = (m.double().cpu().numpy() for m in (system.A, system.B, system.C))
+
+    def _make(self):
+        kf = _FilterpyKF(dim_x=self.A.shape[0], dim_z=self.C.shape[0], dim_u=self.B.shape[1])
+        kf.F, kf.B, kf.H, kf.Q, kf.R = self.A, self.B, self.C, self.Q, self.R
+        kf.x, kf.P = self.x0[:, None].copy(), self.P0.copy()
+        return kf
+
+    def _step(self, kf, y, u_prev, u):
+        kf.predict(u=u_prev[:, None])  # column u: filterpy's x is a column, B u must be one too
+        kf.update(y)
+
+
+class _FilterpyEKF(ExtendedKalmanFilter):
+    """filterpy's EKF with the nonlinear prediction x̂⁻ = f(x̂, u) instead of F x̂ + B u."""
+
+    def __init__(self, model, dim_x, dim_z):
+        super().__init__(dim_x, dim_z)
+        self.model = model
+
+    def predict_x(self, u=0):
+        self.x = self.model.f(self.x[:, 0], u)[:, None]
+
+
+class EKF(_KalmanBase):
+    """Extended Kalman filter: F = ∂f/∂x at x̂_{t-1}, H = ∂g/∂x at x̂⁻_t (``model``: see make_model)."""
+
+    name = "EKF"
+
+    def __init__(self, system, model: str = "auto", dtype=torch.float32, jitter=1e-9):
+        super().__init__(system, dtype, jitter)
+        self.model = make_model(system, model)
+        m = self.model
+        self._H = lambda x, u: m.H(x[:, 0], u)
+        self._g = lambda x, u: m.g(x[:, 0], u)[:, None]
+
+    def _make(self):
+        kf = _FilterpyEKF(self.model, self.system.state_dim, self.system.measurement_dim)
+        kf.Q, kf.R = self.Q, self.R
+        kf.x, kf.P = self.x0[:, None].copy(), self.P0.copy()
+        return kf
+
+    def _step(self, kf, y, u_prev, u):
+        kf.F = self.model.F(kf.x[:, 0], u_prev)
+        kf.predict(u=u_prev)
+        kf.update(y[:, None], self._H, self._g, args=(u,), hx_args=(u,))  # filterpy wants a column z
+
+
+class _FilterpyUKF(UnscentedKalmanFilter):
+    """filterpy's UKF, passing all sigma points through f in one batched call."""
+
+    def compute_process_sigmas(self, dt, fx=None, **fx_args):
+        sigmas = self.points_fn.sigma_points(self.x, self.P)
+        self.sigmas_f = (fx or self.fx)(sigmas, dt, **fx_args)
+
+
+class UKF(_KalmanBase):
+    """Unscented Kalman filter with Merwe scaled sigma points (α, β, κ); the sigma-point square
+    root goes through the same counted repair as P.
+
+    Defaults α = 1, β = 2, κ = 3 − n: the classic choice with non-negative weights; a tiny α
+    (e.g. 1e-3) gives a large negative centre weight and indefinite covariances.
+    """
+
+    name = "UKF"
+
+    def __init__(self, system, alpha=1.0, beta=2.0, kappa=None, model: str = "auto", dtype=torch.float32, jitter=1e-9):
+        super().__init__(system, dtype, jitter)
+        n = system.state_dim
+        self.model = make_model(system, model)
+        self.points = MerweScaledSigmaPoints(
+            n, alpha=alpha, beta=beta, kappa=3.0 - n if kappa is None else kappa, sqrt_method=self.repair.sqrt
+        )
+        m = self.model
+        self._f = lambda x, dt, u: m.f(x, u)
+        self._g = lambda x, u: m.g(x, u)
+
+    def _make(self):
+        s = self.system
+        kf = _FilterpyUKF(s.state_dim, s.measurement_dim, s.dt, self._g, self._f, self.points)
+        kf.Q, kf.R = self.Q, self.R
+        kf.x, kf.P = self.x0.copy(), self.P0.copy()
+        return kf
+
+    def _step(self, kf, y, u_prev, u):
+        kf.predict(u=u_prev)
+        kf.update(y, u=u)

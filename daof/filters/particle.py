@@ -1,0 +1,109 @@
+"""Bootstrap particle filter, batched in torch over runs × particles (specs/benchmark.md, PF row).
+
+Transitions are sampled from the system's true process noise around the nominal f, weights come
+from the exact measurement log-density log p(y_t − g(x_t, u_t)), all in log space. The estimate is
+the weighted mean before resampling; resampling is systematic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from daof.filters.base import Filter
+from envs.system import StochasticSystem
+
+__all__ = ["systematic_resample", "ParticleFilter"]
+
+
+def systematic_resample(weights: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """Systematic resampling of normalised ``weights [..., N]`` with one uniform ``u [...]`` per row.
+
+    Particle j is picked for positions (i + u) / N that fall in [c_{j-1}, c_j), c = cumsum(weights),
+    which is ``filterpy.monte_carlo.systematic_resample`` vectorised over rows. Returns long
+    indices ``[..., N]``.
+    """
+    n = weights.shape[-1]
+    # float64 cumulative sum so that c_N = 1 holds to rounding even for 10^4+ particles
+    cumsum = weights.double().cumsum(-1)
+    cumsum[..., -1] = 1.0
+    positions = (torch.arange(n, device=weights.device, dtype=torch.float64) + u.double()[..., None]) / n
+    return torch.searchsorted(cumsum, positions, right=True).clamp_max_(n - 1)
+
+
+class ParticleFilter(Filter):
+    """Bootstrap PF with N particles; all runs at once, chunked over runs above ``max_elements``.
+
+    ``resample="ess"`` (default) resamples a run when its effective sample size 1/Σw² drops below
+    ``ess_fraction``·N; ``resample="always"`` resamples every step. Runs are processed in chunks
+    of at most ``max_elements`` run-particles; one ``torch.Generator`` seeded by ``seed`` drives
+    the chunks in order, so results depend on ``seed`` and the chunk size only.
+    """
+
+    name = "PF"
+
+    def __init__(
+        self,
+        system: StochasticSystem,
+        num_particles: int = 1000,
+        seed: int = 0,
+        resample: str = "ess",
+        ess_fraction: float = 0.5,
+        max_elements: int = 2**21,
+    ):
+        super().__init__(system)
+        if num_particles < 1:
+            raise ValueError(f"num_particles must be >= 1, got {num_particles}")
+        if resample not in ("ess", "always"):
+            raise ValueError(f"resample must be 'ess' or 'always', got {resample!r}")
+        self.num_particles = num_particles
+        self.seed = seed
+        self.resample = resample
+        self.ess_fraction = ess_fraction
+        self.max_elements = max_elements
+
+    @torch.no_grad()
+    def _run(self, y, u_prev, u):
+        runs = y.shape[0]
+        generator = torch.Generator(device=y.device).manual_seed(int(self.seed))
+        chunk = max(1, self.max_elements // self.num_particles)
+        self.stats = {"resamples": 0, "diverged": 0}
+        out = [
+            self._filter(y[i : i + chunk], u_prev[i : i + chunk], u[i : i + chunk], generator)
+            for i in range(0, runs, chunk)
+        ]
+        return torch.cat(out)
+
+    def _filter(self, y, u_prev, u, generator):
+        s, n = self.system, self.num_particles
+        runs, steps = y.shape[:2]
+        y, u_prev, u = (v.to(torch.float32) for v in (y, u_prev, u))
+        x = s.prior.sample((runs, n), generator)  # particles of x_0 ~ prior, [runs, N, state_dim]
+        log_w = torch.full((runs, n), -math.log(n), device=y.device)
+        out = torch.empty(runs, steps, s.state_dim, device=y.device)
+        resamples = 0
+        for t in range(steps):
+            # x_t^i = f(x_{t-1}^i, u_{t-1}) + ξ^i, ξ^i ~ the true process noise
+            x = s.f(x, u_prev[:, t, None, :].expand(runs, n, -1)) + s.process_noise.sample((runs, n), generator)
+            # w_t^i ∝ w_{t-1}^i p_ζ(y_t − g(x_t^i, u_t))
+            innovation = y[:, t, None, :] - s.g(x, u[:, t, None, :].expand(runs, n, -1))
+            log_w = log_w + s.measurement_noise.log_prob(innovation)
+            log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
+            w = log_w.exp()
+            out[:, t] = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
+            uniforms = torch.rand(runs, generator=generator, device=y.device)
+            if self.resample == "always":
+                rows = torch.ones(runs, dtype=torch.bool, device=y.device)
+            else:
+                rows = 1.0 / (w * w).sum(-1) < self.ess_fraction * n
+            if rows.any():
+                idx = systematic_resample(w, uniforms)
+                # keep the particles of runs that do not resample: gather with the identity there
+                idx = torch.where(rows[:, None], idx, torch.arange(n, device=y.device))
+                x = x.gather(1, idx[..., None].expand_as(x))
+                log_w = torch.where(rows[:, None], torch.full_like(log_w, -math.log(n)), log_w)
+                resamples += int(rows.sum())
+        self.stats["resamples"] += resamples
+        self.stats["diverged"] += int((~torch.isfinite(out).all(-1).all(-1)).sum())
+        return out

@@ -1,0 +1,1 @@
+"""Training machinery shared by every recipe: factories, the DSAC-T loop, checkpoints."""

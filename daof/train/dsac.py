@@ -1,0 +1,171 @@
+"""Train a DAOF filter (v1 or v2) with DSAC-T on any registered system.
+
+The loop of TorchRL's sota-implementations: a ``Collector`` over the batched filtering env runs
+the stochastic actor, a ``TensorDictReplayBuffer`` stores transitions, and every collected batch
+is followed by gradient updates on DSAC-T's schedule (critics every update; actor, α and the
+Polyak-averaged targets every ``delay``-th). A fixed validation set (seeds disjoint from any
+evaluation seed) is filtered deterministically every ``validation.every_frames`` frames; the best
+validation checkpoint is kept as the filter's result (early stopping on validation data).
+
+Checkpoints (``checkpoint.pt``) hold every piece of training state: actor, critics and their
+targets, α, σ̄, optimisers, counters, the global RNG states and the env's generator, the replay
+buffer (included, not rebuilt), the validation history and the logger state. They are written at
+batch boundaries; on resume the env starts fresh episodes (the in-flight partial episodes of the
+interrupted batch are not collected again).
+"""
+
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+from torchrl._utils import timeit
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.objectives import SoftUpdate
+
+from daof.train.base import FilterTrainer
+from daof.train.networks import make_critic
+from envs.filtering_env import FilteringEnv
+from envs.history import FRAME_KEY, with_window
+from losses import DSACTLoss
+
+__all__ = ["DSACTTrainer"]
+
+#: keys the replay buffer does not need (the per-step frame is inside the window already)
+_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale"]
+_LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll")
+
+
+class DSACTTrainer(FilterTrainer):
+    """Owns every piece of one DSAC-T training run; ``train()`` runs (or resumes) it."""
+
+    identity_keys = ("system", "scenario", "window", "version")
+
+    def __init__(self, cfg: DictConfig):
+        kind = {"v1": "DAOF-v1", "v2": "DAOF-v2"}.get(cfg.version)
+        if kind is None:
+            raise ValueError(f"version must be 'v1' or 'v2', got {cfg.version!r}")
+        super().__init__(cfg, kind)
+        self._make_loss()
+        self._make_data()
+
+    # ----------------------------------------------------------------- factories
+    def _make_loss(self) -> None:
+        cfg = self.cfg
+        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth))
+        self.loss = DSACTLoss(
+            self.filter.stochastic_actor(),
+            self.critic,
+            num_qvalue_nets=2,
+            target_entropy=-float(self.system.state_dim),
+            alpha_init=float(cfg.loss.alpha_init),
+        )
+        self.loss.set_keys(action=self.filter.action_key)
+        self.loss.make_value_estimator(gamma=float(cfg.loss.gamma))
+        self.target_updater = SoftUpdate(self.loss, tau=float(cfg.loss.tau))
+        o = cfg.optim
+        self.optim_critic = torch.optim.Adam(
+            list(self.loss.qvalue_network_params.flatten_keys().values()), lr=float(o.lr_critic)
+        )
+        self.optim_actor = torch.optim.Adam(
+            list(self.loss.actor_network_params.flatten_keys().values()), lr=float(o.lr_actor)
+        )
+        self.optim_alpha = torch.optim.Adam([self.loss.log_alpha], lr=float(o.lr_alpha))
+
+    def _make_data(self) -> None:
+        cfg = self.cfg
+        c = cfg.collector
+        env = FilteringEnv(self.system, int(c.env_batch), int(c.episode_steps), seed=int(cfg.seeds.train))
+        self.base_env = env
+        self.env = with_window(env, int(cfg.window), self.filter.uses_controls)
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(int(cfg.buffer.size)), batch_size=int(cfg.optim.batch_size)
+        )
+
+    def _make_collector(self, remaining: int) -> Collector:
+        c = self.cfg.collector
+        frames_per_batch = int(c.env_batch) * int(c.steps_per_batch)
+        return Collector(
+            self.env,
+            self.filter.exploration_policy(),
+            frames_per_batch=frames_per_batch,
+            total_frames=max(remaining, frames_per_batch),
+            auto_register_policy_transforms=False,
+        )
+
+    # ----------------------------------------------------------------- checkpoint parts
+    def extra_state(self) -> dict:
+        return {
+            "loss": self.loss.state_dict(),
+            "optim_critic": self.optim_critic.state_dict(),
+            "optim_actor": self.optim_actor.state_dict(),
+            "optim_alpha": self.optim_alpha.state_dict(),
+            "buffer": self.buffer.state_dict(),
+        }
+
+    def load_extra_state(self, blob: dict) -> None:
+        self.loss.load_state_dict(blob["loss"])
+        self.optim_critic.load_state_dict(blob["optim_critic"])
+        self.optim_actor.load_state_dict(blob["optim_actor"])
+        self.optim_alpha.load_state_dict(blob["optim_alpha"])
+        self.buffer.load_state_dict(blob["buffer"])
+
+    def generators(self) -> dict[str, torch.Generator]:
+        return {"env": self.base_env.rng}
+
+    # ----------------------------------------------------------------- training
+    def _update(self) -> dict:
+        """One DSAC-T gradient update on a sampled batch.
+
+        Critics step every update; the actor, α and the Polyak-averaged targets only every
+        ``delay``-th update, where the actor loss is computed at all. Every backward runs before
+        any optimiser step, because the actor loss reads the (detached) critic weights.
+        """
+        batch = self.buffer.sample()
+        delayed = self.updates % int(self.cfg.loss.delay) == 0
+        if delayed:
+            out = self.loss(batch)
+        else:
+            loss_q, meta = self.loss.qvalue_loss(batch)
+            out = {"loss_qvalue": loss_q, **meta}
+        self.optim_critic.zero_grad(set_to_none=True)
+        out["loss_qvalue"].backward()
+        if delayed:
+            self.optim_actor.zero_grad(set_to_none=True)
+            self.optim_alpha.zero_grad(set_to_none=True)
+            (out["loss_actor"] + out["loss_alpha"]).backward()
+        self.optim_critic.step()
+        if delayed:
+            self.optim_actor.step()
+            self.optim_alpha.step()
+            self.target_updater.step()
+        self.updates += 1
+        return out
+
+    def train(self) -> dict:
+        """Collect, update, validate and checkpoint until ``collector.total_frames``."""
+        c = self.cfg.collector
+        total = int(c.total_frames)
+        bar = self.start(total)
+        collector = self._make_collector(total - self.frames)
+        updates_per_batch = round(int(c.env_batch) * int(c.steps_per_batch) * float(self.cfg.optim.utd))
+        try:
+            for batch in collector:
+                if self.frames >= total:
+                    break
+                with timeit("collect"):
+                    batch = batch.reshape(-1).exclude(*_DROP_KEYS)
+                    self.buffer.extend(batch)
+                    self.frames += batch.numel()
+                metrics = {}
+                if self.frames >= int(c.warmup_frames):
+                    with timeit("update"):
+                        for _ in range(updates_per_batch):
+                            metrics = {**metrics, **self._update()}
+                log = {"train/reward": batch["next", "reward"].mean().item(), "train/updates": self.updates}
+                log.update({f"train/{k}": float(metrics[k].detach().mean()) for k in _LOGGED if k in metrics})
+                self.after_batch(bar, batch.numel(), log, total)
+        finally:
+            collector.shutdown()
+            bar.close()
+        return self.finish()

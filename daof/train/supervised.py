@@ -1,0 +1,73 @@
+"""Train the supervised-learning filter (SLF) by regression on the true state.
+
+SLF is the paper's learned baseline: the same network and input window as the DAOF policy, but
+open loop (measurements and controls only) and fitted by least squares to x_t on simulated data.
+The loss is the DAOF cost ‖x_t − x̂_t‖²_W with the env's default weights, so both learners
+optimise the same error measure. Each "batch" is a fresh set of simulated episodes (seeded from
+the run's seed and the batch index, so a resumed run sees the same data).
+"""
+
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+from torchrl._utils import timeit
+
+from daof.filters.learned import sliding_windows
+from daof.train.base import FilterTrainer
+
+__all__ = ["SLFTrainer"]
+
+
+class SLFTrainer(FilterTrainer):
+    """Regression of x_t on the open-loop window; ``train()`` runs (or resumes) it."""
+
+    def __init__(self, cfg: DictConfig):
+        super().__init__(cfg, "SLF")
+        self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(cfg.optim.lr))
+        s = self.system
+        self.weights = 1.0 / (s.state_dim * s.error_scale**2)
+        self.batches = 0
+
+    def extra_state(self) -> dict:
+        return {"optim": self.optim.state_dict(), "batches": self.batches}
+
+    def load_extra_state(self, blob: dict) -> None:
+        self.optim.load_state_dict(blob["optim"])
+        self.batches = blob["batches"]
+
+    def _dataset(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """One batch of fresh episodes as (windows [M, N·F], targets [M, n])."""
+        c = self.cfg.collector
+        seed = int(self.cfg.seeds.train) * 1_000_003 + self.batches
+        data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed)
+        frames = self.filter.open_loop_frames(data["measurement"], data["control"], data["prev_control"])
+        windows = sliding_windows(frames, int(self.cfg.window))
+        return windows.flatten(0, 1), data["state"].flatten(0, 1)
+
+    def train(self) -> dict:
+        """Fit on fresh simulated batches until ``collector.total_frames`` samples were seen."""
+        total = int(self.cfg.collector.total_frames)
+        bar = self.start(total)
+        batch_size = int(self.cfg.optim.batch_size)
+        epochs = int(self.cfg.optim.epochs_per_batch)
+        try:
+            while self.frames < total:
+                with timeit("collect"):
+                    windows, targets = self._dataset()
+                with timeit("update"):
+                    for _ in range(epochs):
+                        order = torch.randperm(windows.shape[0])
+                        for idx in order.split(batch_size):
+                            estimate = self.filter.estimate(windows[idx])
+                            loss = ((estimate - targets[idx]).pow(2) * self.weights).sum(-1).mean()
+                            self.optim.zero_grad(set_to_none=True)
+                            loss.backward()
+                            self.optim.step()
+                            self.updates += 1
+                self.batches += 1
+                self.frames += windows.shape[0]
+                self.after_batch(bar, windows.shape[0], {"train/loss": loss.item()}, total)
+        finally:
+            bar.close()
+        return self.finish()

@@ -1,0 +1,143 @@
+"""The 28-state right-hand side ẋ = f(x, inputs) of the 14-DOF car (spec §2, §5), batched.
+
+State layout (§2): [X, Y, z_s, φ, θ, ψ, z_u(4), ρ(4), u, v, w, φ̇, θ̇, r, ż_u(4), ω(4)]; coordinates
+0–13, speeds 14–27, so ẋ[:14] is (Ẋ, Ẏ, speeds...). Per-corner quantities are [runs, 4] tensors
+(FL, FR, RL, RR); there is no Python loop over corners.
+
+Inputs held over an RK4 step: δ_sw [runs], T_d [runs, 4], T_b [runs, 4] and the §0 disturbance
+(lateral force F_d, yaw moment M_d) at P [runs, 2]. The disturbance is added to ΣF_y and M_z only;
+it is a force on the body, not a tyre force, so it does not pass through the roll centres (F_geo).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from envs.vehicle14dof.params import Constants
+from envs.vehicle14dof.tyre import magic_formula
+
+__all__ = ["Aux", "rhs", "N_STATE", "IDX"]
+
+N_STATE = 28
+
+
+class IDX:
+    """Indices into the 28-state vector (§2)."""
+
+    X, Y, Z_S, PHI, THETA, PSI = 0, 1, 2, 3, 4, 5
+    Z_U = slice(6, 10)
+    RHO = slice(10, 14)
+    U, V, W, PHI_D, THETA_D, R = 14, 15, 16, 17, 18, 19
+    Z_U_D = slice(20, 24)
+    OMEGA = slice(24, 28)
+
+
+class Aux(NamedTuple):
+    """Auxiliary outputs of §5.10 used by the sensor model and the tests."""
+
+    a_x: torch.Tensor  # kinematic acceleration of P along x_V (u̇ − r v)
+    a_y: torch.Tensor  # v̇ + r u
+    theta_dd: torch.Tensor
+    phi_dd: torch.Tensor
+    w_dot: torch.Tensor
+    F_z: torch.Tensor  # [runs, 4]
+    F_xw: torch.Tensor  # [runs, 4] wheel-frame tyre forces
+    F_yw: torch.Tensor
+    kappa: torch.Tensor
+    s_alpha: torch.Tensor
+
+
+def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool = False):
+    """ẋ for x [runs, 28]; returns ẋ, or (ẋ, Aux) with ``with_aux``."""
+    p = c.p
+    z_u, u, v, w = x[:, 6:10], x[:, 14], x[:, 15], x[:, 16]
+    phi_d, theta_d, r = x[:, 17], x[:, 18], x[:, 19]
+    z_u_d, omega = x[:, 20:24], x[:, 24:28]
+    # one cos and one sin for (φ, θ, ψ, δ) with δ = δ_sw / i_s (§5.1)
+    angles = torch.cat([x[:, 3:6], (delta_sw * (1.0 / p.i_s))[:, None]], -1)
+    cphi, cth, cpsi, cdelta = torch.cos(angles).unbind(-1)
+    sphi, sth, spsi, sdelta = torch.sin(angles).unbind(-1)
+
+    # §5.2 suspension: body-corner displacement/velocity, compression Δ, strut force F_s
+    zb = x[:, 2:3] - c.x_i * sth[:, None] + c.y_i * (cth * sphi)[:, None]
+    zb_d = (
+        w[:, None]
+        - c.x_i * (cth * theta_d)[:, None]
+        + c.y_i * (cth * cphi * phi_d - sth * sphi * theta_d)[:, None]
+    )
+    F_s_dyn = (z_u - zb) @ c.K_susp + c.c_s * (z_u_d - zb_d)  # F_s − F_s0
+    F_s = c.F_s0 + F_s_dyn
+
+    # §5.3 normal loads
+    F_z = torch.clamp(c.F_z0 - p.k_t * z_u - p.c_t * z_u_d, min=0.0)
+
+    # §5.4 contact-patch velocities and slips; δ_i = (δ, δ, 0, 0)
+    cd = 1.0 + (cdelta - 1.0)[:, None] * c.front
+    sd = sdelta[:, None] * c.front
+    vx = u[:, None] - r[:, None] * c.y_i
+    vy = v[:, None] + r[:, None] * c.x_i
+    vxw = vx * cd + vy * sd
+    vyw = vy * cd - vx * sd
+    inv_den = 1.0 / torch.clamp(vxw.abs(), min=p.v_eps)
+    kappa = (omega * p.R_e - vxw) * inv_den
+    s_alpha = -vyw * inv_den
+
+    # §5.5 tyre forces, wheel frame -> V
+    F_xw, F_yw = magic_formula(kappa, s_alpha, F_z, c.tyre, p.mu_scale)
+    F_x = F_xw * cd - F_yw * sd
+    F_y = F_xw * sd + F_yw * cd
+
+    # §5.6 force and moment sums
+    F_a = -c.aero * u * u.abs()
+    # sums over corners as matrix-vector products (much cheaper than .sum(-1) on [runs, 4])
+    SFx = F_x @ c.ones4 + F_a
+    SFy = F_y @ c.ones4 + dist[:, 0]
+    M_z = F_y @ c.x_i - F_x @ c.y_i + dist[:, 1]
+    M_xs = F_s @ c.y_i
+    M_ys = -(F_s @ c.x_i)
+
+    # §5.7 longitudinal/pitch and lateral/roll 2×2 solves, yaw, heave
+    m, ms, e, d = c.m, p.m_s, c.e, c.d
+    B1 = ms * e * cth
+    C1 = p.I_yy + B1 * e * cth
+    b2 = ms * p.g * e * sth + e * cth * F_a + M_ys
+    det1 = m * C1 - B1 * B1
+    a_x = (C1 * SFx - B1 * b2) / det1
+    theta_dd = (m * b2 - B1 * SFx) / det1
+    B2 = -ms * d * cphi
+    C2 = p.I_xx + B2 * B2 / ms
+    b2 = ms * p.g * d * sphi + M_xs
+    det2 = m * C2 - B2 * B2
+    a_y = (C2 * SFy - B2 * b2) / det2
+    phi_dd = (m * b2 - B2 * SFy) / det2
+    r_d = M_z * (1.0 / p.I_zz)
+    w_d = (F_s_dyn @ c.ones4) * (1.0 / ms)
+
+    # §5.8 direct load transfer F_geo and unsprung vertical dynamics
+    F_y_axle = F_y @ c.axle_sum  # [runs, (f, r)]
+    m_u_ay = c.m_u_axle * a_y[:, None]  # m_u,j a_y
+    G = (c.h_rc * (F_y_axle - 2 * m_u_ay) + 2 * p.h_u * m_u_ay) / c.track
+    F_geo = G @ c.geo_G + (c.X_g_coef * a_x)[:, None] * c.geo_X
+    z_u_dd = ((F_z - c.F_z0) - F_s_dyn - F_geo) / c.m_u
+
+    # §5.9 wheel spin
+    sgn = torch.tanh(omega * (1.0 / p.omega_eps))
+    omega_d = (T_d - (T_b + p.f_r * p.R_e * F_z) * sgn - p.R_e * F_xw) * (1.0 / p.J_w)
+
+    # §5.10 kinematics
+    xdot = torch.cat(
+        [
+            torch.stack([u * cpsi - v * spsi, u * spsi + v * cpsi, w, phi_d, theta_d, r], -1),
+            z_u_d,
+            omega,
+            torch.stack([a_x + r * v, a_y - r * u, w_d, phi_dd, theta_dd, r_d], -1),
+            z_u_dd,
+            omega_d,
+        ],
+        -1,
+    )
+    if not with_aux:
+        return xdot
+    return xdot, Aux(a_x, a_y, theta_dd, phi_dd, w_d, F_z, F_xw, F_yw, kappa, s_alpha)

@@ -1,0 +1,198 @@
+"""Every parameter of the 14-DOF car (veh14dof spec §3, §4, §6–§8) as one overridable dataclass.
+
+``Vehicle14DOFParams`` holds the numbers exactly as the spec lists them; ``Constants`` derives
+what the right-hand side needs (static loads F_s0,i / F_z0,i, d, e, k_arb, per-corner vectors) once
+per dtype and device so the ODE never builds tensors in its inner loop.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+__all__ = ["TyreCoeffs", "Vehicle14DOFParams", "Constants"]
+
+
+@dataclass(frozen=True)
+class TyreCoeffs:
+    """Reduced MF 5.2 coefficients of Pacejka's 205/60R15 (A3.1), sign-adapted (§4)."""
+
+    Fz_nom: float = 4000.0  # F_z0 of the tyre model (FNOMIN), not the static corner load
+    pCx1: float = 1.685
+    pDx1: float = 1.210
+    pDx2: float = -0.037
+    pEx1: float = 0.344
+    pEx2: float = 0.095
+    pEx3: float = -0.020
+    pKx1: float = 21.51
+    pKx2: float = -0.163
+    pKx3: float = 0.245
+    pCy1: float = 1.193
+    pDy1: float = 0.990  # published −0.990 (ISO sign convention)
+    pDy2: float = -0.145  # published +0.145
+    pEy1: float = -1.003
+    pEy2: float = -0.537
+    pKy1: float = 14.95  # published −14.95
+    pKy2: float = 2.130
+    rBx1: float = 12.35
+    rBx2: float = -10.77
+    rCx1: float = 1.092
+    rBy1: float = 6.461
+    rBy2: float = 4.196
+    rCy1: float = 1.081
+    eps_F: float = 1e-3  # ε_F [N]
+
+
+@dataclass
+class Vehicle14DOFParams:
+    """All numbers of the spec; each overridable through ``make_system("veh14dof", name=value)``."""
+
+    # §3.1 masses and geometry
+    m_s: float = 965.7
+    m_uf: float = 35.19
+    m_ur: float = 28.61
+    l_f: float = 1.156
+    l_r: float = 1.422
+    t_f: float = 1.386
+    t_r: float = 1.364
+    h_s: float = 0.6137
+    h_rcf: float = 0.10
+    h_rcr: float = 0.15
+    h_pc: float = 0.0
+    h_u: float = 0.30
+    # §3.2 inertias
+    I_xx: float = 207.2
+    I_yy: float = 1565.8
+    I_zz: float = 1791.6
+    J_w: float = 1.0
+    # §3.3 suspension (wheel-centre rates per wheel; anti-roll bars per axle)
+    k_sf: float = 24445.0
+    k_sr: float = 19629.0
+    c_sf: float = 1786.0
+    c_sr: float = 1649.0
+    K_arbf: float = 6915.0
+    K_arbr: float = 2644.0
+    # §3.4 tyre, wheel, resistances, steering
+    R_e: float = 0.306
+    k_t: float = 200000.0
+    c_t: float = 50.0
+    f_r: float = 0.010
+    rho_air: float = 1.225
+    C_d: float = 0.38
+    A_f: float = 1.73
+    i_s: float = 16.0
+    brake_front: float = 0.66  # brake split, front share (rear 0.34)
+    v_eps: float = 5.0
+    omega_eps: float = 0.5
+    g: float = 9.81
+    mu_scale: float = 1.0  # λ_μ
+    tyre: TyreCoeffs = field(default_factory=TyreCoeffs)
+    # §6 integration: RK4 step inside the filter step Δt
+    h: float = 0.001
+    dt: float = 0.02
+    # float32 is accurate to well inside the App. A tolerances (tests/test_vehicle14dof.py)
+    dtype: str = "float32"
+    # §7 PI speed holder
+    K_p: float = 3.0
+    K_i: float = 1.0
+    a_cmd_min: float = -3.0
+    a_cmd_max: float = 1.0
+    # §0 randomised "large curvature turning" manoeuvre
+    v0_kmh: tuple[float, float] = (60.0, 80.0)
+    t1_s: tuple[float, float] = (0.5, 1.5)
+    t2_s: tuple[float, float] = (6.5, 8.5)
+    amp_min_deg: float = 30.0
+    amp_margin_deg: float = 20.0
+    # §7 spin-out table "stable up to": speed [km/h] -> steering-wheel amplitude [deg]
+    spin_speeds_kmh: tuple[float, ...] = (60.0, 70.0, 80.0)
+    spin_amp_deg: tuple[float, ...] = (100.0, 80.0, 70.0)
+    # §0 Gaussian-mixture disturbance at the CG: (lateral force N, yaw moment N m)
+    dist_weights: tuple[float, float] = (0.9, 0.1)
+    dist_scale: tuple[float, float] = (100.0, 50.0)  # std of the first component
+    dist_std_ratio: tuple[float, float] = (1.0, 10.0)  # component stds in units of dist_scale
+    # §8 sensors: Laplace noise with these standard deviations (b = σ/√2)
+    wheel_speed_std: float = 0.1  # rad/s
+    steer_std_deg: float = 0.1
+    steer_quant_deg: float = 0.1  # SAS resolution; 0 disables quantisation
+    accel_std: float = 0.0104  # m/s^2
+    gyro_std: float = 1.73e-3  # rad/s
+    # chosen: standalone GNSS (1.5 m); 0.02 m would be RTK-fixed
+    gnss_pos_std: float = 1.5
+    gnss_vel_std: float = 0.05
+    gnss_period_steps: int = 5  # 10 Hz fixes at Δt = 20 ms
+    # §8 per-run constant biases
+    wheel_scale_err: float = 0.003  # ε_R ~ U(±0.3 %)
+    steer_offset_deg: float = 1.0  # U(±1°)
+    accel_bias_std: float = 0.05
+    gyro_bias_std: float = 1.75e-3
+
+    @property
+    def torch_dtype(self) -> torch.dtype:
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        return getattr(torch, self.dtype)
+
+
+class Constants:
+    """Derived quantities of §3 and per-corner vectors (FL, FR, RL, RR) in one dtype/device."""
+
+    def __init__(self, p: Vehicle14DOFParams, dtype=torch.float64, device="cpu"):
+        self.p = p
+        self.tyre = p.tyre
+        self.dtype, self.device = dtype, torch.device(device)
+        L = p.l_f + p.l_r
+        self.L = L
+        self.m = p.m_s + 2 * p.m_uf + 2 * p.m_ur
+        self.d = p.h_s - (p.h_rcf * p.l_r + p.h_rcr * p.l_f) / L  # sprung CG above roll axis
+        self.e = p.h_s - p.h_pc  # sprung CG above pitch axis
+        self.aero = 0.5 * p.rho_air * p.C_d * p.A_f  # F_a = −aero·u|u|
+        self.k_arbf = p.K_arbf / p.t_f**2
+        self.k_arbr = p.K_arbr / p.t_r**2
+
+        def vec(values):
+            return torch.tensor(values, dtype=dtype, device=self.device)
+
+        self.x_i = vec([p.l_f, p.l_f, -p.l_r, -p.l_r])
+        self.y_i = vec([p.t_f / 2, -p.t_f / 2, p.t_r / 2, -p.t_r / 2])
+        self.m_u = vec([p.m_uf, p.m_uf, p.m_ur, p.m_ur])
+        Fs0 = [p.m_s * p.g * a / (2 * L) for a in (p.l_r, p.l_r, p.l_f, p.l_f)]
+        self.F_s0 = vec(Fs0)
+        self.F_z0 = vec([f + mu * p.g for f, mu in zip(Fs0, (p.m_uf, p.m_uf, p.m_ur, p.m_ur))])
+        self.c_s = vec([p.c_sf, p.c_sf, p.c_sr, p.c_sr])
+        # F_s = F_s0 + Δ·K + c_s Δ̇ with K = diag(k_s) + anti-roll-bar coupling (§5.2)
+        kf, kr = self.k_arbf, self.k_arbr
+        self.K_susp = vec(
+            [
+                [p.k_sf + kf, -kf, 0.0, 0.0],
+                [-kf, p.k_sf + kf, 0.0, 0.0],
+                [0.0, 0.0, p.k_sr + kr, -kr],
+                [0.0, 0.0, -kr, p.k_sr + kr],
+            ]
+        )
+        self.front = vec([1.0, 1.0, 0.0, 0.0])
+        self.ones4 = vec([1.0, 1.0, 1.0, 1.0])
+        self.axle_sum = vec([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])
+        self.drive_split = vec([0.0, 0.0, 0.5, 0.5])  # RWD, open differential
+        bf = p.brake_front
+        self.brake_split_vec = vec([bf / 2, bf / 2, (1 - bf) / 2, (1 - bf) / 2])
+        self.h_rc = vec([p.h_rcf, p.h_rcr])
+        self.m_u_axle = vec([p.m_uf, p.m_ur])
+        self.track = vec([p.t_f, p.t_r])
+        # F_geo = G @ geo_G + X_g ⊗ geo_X (§5.8)
+        self.geo_G = vec([[-1.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 1.0]])
+        self.geo_X = vec([-1.0, -1.0, 1.0, 1.0])
+        self.X_g_coef = (2 * p.m_uf + 2 * p.m_ur) * p.h_u / (2 * L)
+        self.Sigma_muhu = (2 * p.m_uf + 2 * p.m_ur) * p.h_u
+
+    def free_rolling_omega(self, V0: torch.Tensor) -> torch.Tensor:
+        """§5.11: ω_i = V0 (1 − f_r F_z0,i / K_x(F_z0,i)) / R_e, shape [runs, 4]."""
+        from envs.vehicle14dof.tyre import longitudinal_stiffness
+
+        Kx = longitudinal_stiffness(self.F_z0, self.tyre)
+        return V0[:, None] * (1 - self.p.f_r * self.F_z0 / Kx) / self.p.R_e
+
+
+DEG = math.pi / 180.0
+KMH = 1.0 / 3.6
