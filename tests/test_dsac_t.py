@@ -21,9 +21,7 @@ RAW_ZERO = -40.0  # softplus(RAW_ZERO) ≈ 4e-18
 
 def make_actor(key="correction"):
     spec = Bounded(-2 * torch.ones(N_ACT), 2 * torch.ones(N_ACT), (N_ACT,))
-    net = nn.Sequential(
-        MLP(in_features=N_OBS, out_features=2 * N_ACT, num_cells=[16]), NormalParamExtractor()
-    )
+    net = nn.Sequential(MLP(in_features=N_OBS, out_features=2 * N_ACT, num_cells=[16]), NormalParamExtractor())
     return ProbabilisticActor(
         TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"],
@@ -48,9 +46,7 @@ class ConstCritic(nn.Module):
         self.out = nn.Parameter(torch.zeros(2))
 
     def forward(self, obs, act):
-        return self.out.expand(*obs.shape[:-1], 2) + 0.0 * (
-            obs.sum(-1, keepdim=True) + act.sum(-1, keepdim=True)
-        )
+        return self.out.expand(*obs.shape[:-1], 2) + 0.0 * (obs.sum(-1, keepdim=True) + act.sum(-1, keepdim=True))
 
 
 def make_loss(critic=None, **kwargs):
@@ -63,9 +59,7 @@ def make_loss(critic=None, **kwargs):
 
 def const_loss(online, target, **kwargs):
     """A loss with constant critics: ``online``/``target`` are [(μ, raw)] per critic."""
-    loss = make_loss(
-        TensorDictModule(ConstCritic(), ["observation", "correction"], ["state_action_value"]), **kwargs
-    )
+    loss = make_loss(TensorDictModule(ConstCritic(), ["observation", "correction"], ["state_action_value"]), **kwargs)
     with torch.no_grad():
         loss.qvalue_network_params["module", "out"].copy_(torch.tensor(online))
         loss.target_qvalue_network_params["module", "out"].copy_(torch.tensor(target))
@@ -227,9 +221,7 @@ def test_custom_action_key_and_gradient_routing():
     loss.zero_grad()
     loss_a, _ = loss.actor_loss(batch)
     loss_a.backward()
-    assert all(
-        p.grad is None or p.grad.abs().sum() == 0 for p in loss.qvalue_network_params.values(True, True)
-    )
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in loss.qvalue_network_params.values(True, True))
     assert all(p.grad.abs().sum() > 0 for p in loss.actor_network_params.values(True, True))
     out = loss(batch)
     assert all(torch.isfinite(v).all() for v in out.values())

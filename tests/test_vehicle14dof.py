@@ -333,12 +333,39 @@ def test_t2_coasting_start(ci):
 
 
 def test_t9_free_rolling_slip(ci):
+    """T9: κ ≈ −4.6e-4 and F_xw/F_z slightly above −f_r, exactly −f_r + J_w|ω̇|/(R_e F_z) (§5.9)."""
     x, aux = ci.at(2.0)
+    p = Vehicle14DOFParams()
     kappa = aux.kappa[COAST].double()
     ratio = aux.F_xw[COAST].double() / aux.F_z[COAST].double()
+    omega_dot = aux.a_x[COAST].double() / p.R_e  # free rolling: ω̇ = u̇ / R_e
+    identity = -p.f_r - p.J_w * omega_dot / (p.R_e * aux.F_z[COAST].double())
+    torch.testing.assert_close(ratio, identity, rtol=2e-3, atol=0)
     for k, r in zip(kappa.tolist(), ratio.tolist()):
         assert k == pytest.approx(-4.6e-4, rel=0.03)
-        assert r == pytest.approx(-0.0093, rel=0.03)
+        assert -p.f_r < r < 0
+
+
+@pytest.mark.parametrize(
+    "axle",
+    [
+        "front",
+        pytest.param(
+            "rear",
+            marks=pytest.mark.xfail(
+                reason="measured F_xw/F_z = −0.00900 on the rear wheels (lighter load, so the wheel's "
+                "J_w ω̇ term weighs more: −f_r + J_w|ω̇|/(R_e F_z)); the spec's −0.0093 fits the front "
+                "(−0.00919)",
+                strict=True,
+            ),
+        ),
+    ],
+)
+def test_t9_force_ratio_vs_spec_value(ci, axle):
+    _, aux = ci.at(2.0)
+    ratio = aux.F_xw[COAST].double() / aux.F_z[COAST].double()
+    for r in ratio[:2] if axle == "front" else ratio[2:]:
+        assert r.item() == pytest.approx(-0.0093, rel=0.03)
 
 
 @pytest.mark.parametrize(

@@ -38,7 +38,9 @@ class ParticleFilter(Filter):
     ``resample="ess"`` (default) resamples a run when its effective sample size 1/Σw² drops below
     ``ess_fraction``·N; ``resample="always"`` resamples every step. Runs are processed in chunks
     of at most ``max_elements`` run-particles; one ``torch.Generator`` seeded by ``seed`` drives
-    the chunks in order, so results depend on ``seed`` and the chunk size only.
+    the chunks in order, so results depend on ``seed`` and the chunk size only. A run whose
+    estimate goes non-finite keeps NaN estimates from then on and is counted in
+    ``stats["diverged"]``.
     """
 
     name = "PF"
@@ -83,6 +85,7 @@ class ParticleFilter(Filter):
         log_w = torch.full((runs, n), -math.log(n), device=y.device)
         out = torch.empty(runs, steps, s.state_dim, device=y.device)
         resamples = 0
+        diverged = torch.zeros(runs, dtype=torch.bool, device=y.device)
         for t in range(steps):
             # x_t^i = f(x_{t-1}^i, u_{t-1}) + ξ^i, ξ^i ~ the true process noise
             x = s.f(x, u_prev[:, t, None, :].expand(runs, n, -1)) + s.process_noise.sample((runs, n), generator)
@@ -91,7 +94,10 @@ class ParticleFilter(Filter):
             log_w = log_w + s.measurement_noise.log_prob(innovation)
             log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
             w = log_w.exp()
-            out[:, t] = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
+            estimate = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
+            # a run that went non-finite stays NaN (resampling could otherwise revive it)
+            diverged |= ~torch.isfinite(estimate).all(-1)
+            out[:, t] = estimate.masked_fill(diverged[:, None], math.nan)
             uniforms = torch.rand(runs, generator=generator, device=y.device)
             if self.resample == "always":
                 rows = torch.ones(runs, dtype=torch.bool, device=y.device)
@@ -105,5 +111,5 @@ class ParticleFilter(Filter):
                 log_w = torch.where(rows[:, None], torch.full_like(log_w, -math.log(n)), log_w)
                 resamples += int(rows.sum())
         self.stats["resamples"] += resamples
-        self.stats["diverged"] += int((~torch.isfinite(out).all(-1).all(-1)).sum())
+        self.stats["diverged"] += int(diverged.sum())
         return out

@@ -57,7 +57,7 @@ class DSACTTrainer(FilterTrainer):
             self.filter.stochastic_actor(),
             self.critic,
             num_qvalue_nets=2,
-            target_entropy=-float(self.system.state_dim),
+            target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
         )
         self.loss.set_keys(action=self.filter.action_key)
@@ -71,6 +71,20 @@ class DSACTTrainer(FilterTrainer):
             list(self.loss.actor_network_params.flatten_keys().values()), lr=float(o.lr_actor)
         )
         self.optim_alpha = torch.optim.Adam([self.loss.log_alpha], lr=float(o.lr_alpha))
+
+    def target_entropy(self) -> float:
+        """DSAC-T's −dim(A), measured in the actor's normalised action space [−1, 1]^n.
+
+        The TanhNormal's log-prob is in the action's own units (rad, rad/s), whose ranges are
+        far from [−1, 1]; by the change of variables a = half·ã + mid, −dim(A) in normalised units
+        is −n + Σ log(half-range) here. Without this, α would force exploration noise of the
+        order of the whole estimate range instead of a fixed fraction of it.
+        """
+        entropy = self.cfg.loss.get("target_entropy", "auto")
+        if entropy != "auto":
+            return float(entropy)
+        half = (self.filter.high - self.filter.low) / 2
+        return float(-half.numel() + half.log().sum())
 
     def _make_data(self) -> None:
         cfg = self.cfg

@@ -50,48 +50,47 @@ class Aux(NamedTuple):
 
 
 def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool = False):
-    """ẋ for x [runs, 28]; returns ẋ, or (ẋ, Aux) with ``with_aux``."""
-    p = c.p
+    """ẋ for x [runs, 28]; returns ẋ, or (ẋ, Aux) with ``with_aux``.
+
+    Scalars come from ``c.s`` as 0-dim tensors: multiplying a float32 tensor by a Python float
+    costs an extra dtype conversion per op, which dominates at small batch.
+    """
+    s = c.s
     z_u, u, v, w = x[:, 6:10], x[:, 14], x[:, 15], x[:, 16]
     phi_d, theta_d, r = x[:, 17], x[:, 18], x[:, 19]
     z_u_d, omega = x[:, 20:24], x[:, 24:28]
     # one cos and one sin for (φ, θ, ψ, δ) with δ = δ_sw / i_s (§5.1)
-    angles = torch.cat([x[:, 3:6], (delta_sw * (1.0 / p.i_s))[:, None]], -1)
+    angles = torch.cat([x[:, 3:6], (delta_sw * s.inv_i_s)[:, None]], -1)
     cphi, cth, cpsi, cdelta = torch.cos(angles).unbind(-1)
     sphi, sth, spsi, sdelta = torch.sin(angles).unbind(-1)
 
-    # §5.2 suspension: body-corner displacement/velocity, compression Δ, strut force F_s
-    zb = x[:, 2:3] - c.x_i * sth[:, None] + c.y_i * (cth * sphi)[:, None]
-    zb_d = (
-        w[:, None]
-        - c.x_i * (cth * theta_d)[:, None]
-        + c.y_i * (cth * cphi * phi_d - sth * sphi * theta_d)[:, None]
-    )
-    F_s_dyn = (z_u - zb) @ c.K_susp + c.c_s * (z_u_d - zb_d)  # F_s − F_s0
+    # §5.2 suspension: z_b,i = z_s − x_i sθ + y_i cθ sφ and its rate, as (·) @ [1; −x_i; y_i]
+    zb = torch.stack([x[:, 2], sth, cth * sphi], -1) @ c.corner_map
+    zb_d = torch.stack([w, cth * theta_d, cth * cphi * phi_d - sth * sphi * theta_d], -1) @ c.corner_map
+    F_s_dyn = (z_u - zb) @ c.K_susp + c.c_s * (z_u_d - zb_d)  # F_s − F_s0 (springs, bars, dampers)
     F_s = c.F_s0 + F_s_dyn
 
     # §5.3 normal loads
-    F_z = torch.clamp(c.F_z0 - p.k_t * z_u - p.c_t * z_u_d, min=0.0)
+    F_z = torch.clamp(c.F_z0 - s.k_t * z_u - s.c_t * z_u_d, min=0.0)
 
-    # §5.4 contact-patch velocities and slips; δ_i = (δ, δ, 0, 0)
+    # §5.4 contact-patch velocities (v_x,i = u − r y_i, v_y,i = v + r x_i) and slips; δ_i = (δ, δ, 0, 0)
+    vel = x[:, 14:20] @ c.velocity_map
+    vx, vy = vel[:, :4], vel[:, 4:]
     cd = 1.0 + (cdelta - 1.0)[:, None] * c.front
     sd = sdelta[:, None] * c.front
-    vx = u[:, None] - r[:, None] * c.y_i
-    vy = v[:, None] + r[:, None] * c.x_i
     vxw = vx * cd + vy * sd
     vyw = vy * cd - vx * sd
-    inv_den = 1.0 / torch.clamp(vxw.abs(), min=p.v_eps)
-    kappa = (omega * p.R_e - vxw) * inv_den
+    inv_den = 1.0 / torch.clamp(vxw.abs(), min=c.p.v_eps)
+    kappa = (omega * s.R_e - vxw) * inv_den
     s_alpha = -vyw * inv_den
 
     # §5.5 tyre forces, wheel frame -> V
-    F_xw, F_yw = magic_formula(kappa, s_alpha, F_z, c.tyre, p.mu_scale)
+    F_xw, F_yw = magic_formula(kappa, s_alpha, F_z, c.tyre_s, s.mu_scale)
     F_x = F_xw * cd - F_yw * sd
     F_y = F_xw * sd + F_yw * cd
 
-    # §5.6 force and moment sums
-    F_a = -c.aero * u * u.abs()
-    # sums over corners as matrix-vector products (much cheaper than .sum(-1) on [runs, 4])
+    # §5.6 force and moment sums (corner sums as matrix-vector products: cheaper than .sum(-1))
+    F_a = -s.aero * u * u.abs()
     SFx = F_x @ c.ones4 + F_a
     SFy = F_y @ c.ones4 + dist[:, 0]
     M_z = F_y @ c.x_i - F_x @ c.y_i + dist[:, 1]
@@ -99,32 +98,32 @@ def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool 
     M_ys = -(F_s @ c.x_i)
 
     # §5.7 longitudinal/pitch and lateral/roll 2×2 solves, yaw, heave
-    m, ms, e, d = c.m, p.m_s, c.e, c.d
-    B1 = ms * e * cth
-    C1 = p.I_yy + B1 * e * cth
-    b2 = ms * p.g * e * sth + e * cth * F_a + M_ys
+    m = s.m
+    B1 = s.m_s_e * cth  # m_s e cθ
+    C1 = s.I_yy + B1 * B1 * s.inv_m_s  # I_yy,s + m_s e² cθ²
+    b2 = s.m_s_g_e * sth + s.e * cth * F_a + M_ys
     det1 = m * C1 - B1 * B1
     a_x = (C1 * SFx - B1 * b2) / det1
     theta_dd = (m * b2 - B1 * SFx) / det1
-    B2 = -ms * d * cphi
-    C2 = p.I_xx + B2 * B2 / ms
-    b2 = ms * p.g * d * sphi + M_xs
+    B2 = -s.m_s_d * cphi  # −m_s d cφ
+    C2 = s.I_xx + B2 * B2 * s.inv_m_s  # I_xx,s + m_s d² cφ²
+    b2 = s.m_s_g_d * sphi + M_xs
     det2 = m * C2 - B2 * B2
     a_y = (C2 * SFy - B2 * b2) / det2
     phi_dd = (m * b2 - B2 * SFy) / det2
-    r_d = M_z * (1.0 / p.I_zz)
-    w_d = (F_s_dyn @ c.ones4) * (1.0 / ms)
+    r_d = M_z * s.inv_I_zz
+    w_d = (F_s_dyn @ c.ones4) * s.inv_m_s
 
     # §5.8 direct load transfer F_geo and unsprung vertical dynamics
     F_y_axle = F_y @ c.axle_sum  # [runs, (f, r)]
     m_u_ay = c.m_u_axle * a_y[:, None]  # m_u,j a_y
-    G = (c.h_rc * (F_y_axle - 2 * m_u_ay) + 2 * p.h_u * m_u_ay) / c.track
-    F_geo = G @ c.geo_G + (c.X_g_coef * a_x)[:, None] * c.geo_X
-    z_u_dd = ((F_z - c.F_z0) - F_s_dyn - F_geo) / c.m_u
+    G = (c.h_rc * (F_y_axle - 2.0 * m_u_ay) + c.two_h_u * m_u_ay) / c.track
+    F_geo = G @ c.geo_G + (s.X_g_coef * a_x)[:, None] * c.geo_X
+    z_u_dd = ((F_z - c.F_z0) - F_s_dyn - F_geo) * c.inv_m_u
 
     # §5.9 wheel spin
-    sgn = torch.tanh(omega * (1.0 / p.omega_eps))
-    omega_d = (T_d - (T_b + p.f_r * p.R_e * F_z) * sgn - p.R_e * F_xw) * (1.0 / p.J_w)
+    sgn = torch.tanh(omega * s.inv_omega_eps)
+    omega_d = (T_d - (T_b + s.f_r_R_e * F_z) * sgn - s.R_e * F_xw) * s.inv_J_w
 
     # §5.10 kinematics
     xdot = torch.cat(

@@ -19,7 +19,8 @@ __all__ = ["sample_manoeuvre", "nominal_manoeuvre", "ramp", "steering", "speed_h
 
 def _uniform(lo_hi, runs, generator, device, dtype):
     lo, hi = lo_hi
-    return lo + (hi - lo) * torch.rand(runs, generator=generator, device=device, dtype=dtype)
+    # drawn in float32 whatever the internal dtype, so float32 and float64 runs share episodes
+    return (lo + (hi - lo) * torch.rand(runs, generator=generator, device=device)).to(dtype)
 
 
 def max_amplitude(v0_kmh: torch.Tensor, p: Vehicle14DOFParams) -> torch.Tensor:
@@ -39,7 +40,7 @@ def sample_manoeuvre(runs, generator, p: Vehicle14DOFParams, device, dtype) -> T
     t1 = _uniform(p.t1_s, runs, generator, device, dtype)
     t2 = _uniform(p.t2_s, runs, generator, device, dtype)
     a_hi = max_amplitude(v0_kmh, p) - p.amp_margin_deg
-    u = torch.rand(runs, generator=generator, device=device, dtype=dtype)
+    u = torch.rand(runs, generator=generator, device=device).to(dtype)
     amp_deg = p.amp_min_deg + u * (a_hi - p.amp_min_deg)
     return TensorDict(
         {

@@ -8,41 +8,14 @@ per dtype and device so the ODE never builds tensors in its inner loop.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from types import SimpleNamespace
 
 import torch
 
+from envs.vehicle14dof.tyre import TyreCoeffs, longitudinal_stiffness, prepare
+
 __all__ = ["TyreCoeffs", "Vehicle14DOFParams", "Constants"]
-
-
-@dataclass(frozen=True)
-class TyreCoeffs:
-    """Reduced MF 5.2 coefficients of Pacejka's 205/60R15 (A3.1), sign-adapted (§4)."""
-
-    Fz_nom: float = 4000.0  # F_z0 of the tyre model (FNOMIN), not the static corner load
-    pCx1: float = 1.685
-    pDx1: float = 1.210
-    pDx2: float = -0.037
-    pEx1: float = 0.344
-    pEx2: float = 0.095
-    pEx3: float = -0.020
-    pKx1: float = 21.51
-    pKx2: float = -0.163
-    pKx3: float = 0.245
-    pCy1: float = 1.193
-    pDy1: float = 0.990  # published −0.990 (ISO sign convention)
-    pDy2: float = -0.145  # published +0.145
-    pEy1: float = -1.003
-    pEy2: float = -0.537
-    pKy1: float = 14.95  # published −14.95
-    pKy2: float = 2.130
-    rBx1: float = 12.35
-    rBx2: float = -10.77
-    rCx1: float = 1.092
-    rBy1: float = 6.461
-    rBy2: float = 4.196
-    rCy1: float = 1.081
-    eps_F: float = 1e-3  # ε_F [N]
 
 
 @dataclass
@@ -94,6 +67,8 @@ class Vehicle14DOFParams:
     dt: float = 0.02
     # float32 is accurate to well inside the App. A tolerances (tests/test_vehicle14dof.py)
     dtype: str = "float32"
+    # torch.compile the RK4 step (opt-in: about a minute of compile time, see integrate.make_substep)
+    compile: bool = False
     # §7 PI speed holder
     K_p: float = 3.0
     K_i: float = 1.0
@@ -185,11 +160,38 @@ class Constants:
         self.geo_X = vec([-1.0, -1.0, 1.0, 1.0])
         self.X_g_coef = (2 * p.m_uf + 2 * p.m_ur) * p.h_u / (2 * L)
         self.Sigma_muhu = (2 * p.m_uf + 2 * p.m_ur) * p.h_u
+        # z_b,i = [z_s, sθ, cθ sφ] @ corner_map; [v_x,i | v_y,i] = [u, v, w, φ̇, θ̇, r] @ velocity_map
+        self.corner_map = torch.stack([torch.ones_like(self.x_i), -self.x_i, self.y_i])
+        self.velocity_map = torch.zeros(6, 8, dtype=dtype, device=self.device)
+        self.velocity_map[0, :4] = 1.0
+        self.velocity_map[1, 4:] = 1.0
+        self.velocity_map[5, :4] = -self.y_i
+        self.velocity_map[5, 4:] = self.x_i
+        self.inv_m_u = 1.0 / self.m_u
+        self.two_h_u = vec(2 * p.h_u)
+        scalars = {f.name: getattr(p, f.name) for f in fields(p) if isinstance(getattr(p, f.name), float)}
+        scalars.update(
+            m=self.m,
+            e=self.e,
+            aero=self.aero,
+            X_g_coef=self.X_g_coef,
+            inv_i_s=1.0 / p.i_s,
+            inv_m_s=1.0 / p.m_s,
+            inv_I_zz=1.0 / p.I_zz,
+            inv_J_w=1.0 / p.J_w,
+            inv_omega_eps=1.0 / p.omega_eps,
+            f_r_R_e=p.f_r * p.R_e,
+            m_s_e=p.m_s * self.e,
+            m_s_d=p.m_s * self.d,
+            m_s_g_e=p.m_s * p.g * self.e,
+            m_s_g_d=p.m_s * p.g * self.d,
+        )
+        #: 0-dim tensors of every scalar the right-hand side uses (see dynamics.rhs)
+        self.s = SimpleNamespace(**{k: vec(v) for k, v in scalars.items()})
+        self.tyre_s = prepare(p.tyre, dtype, self.device)
 
     def free_rolling_omega(self, V0: torch.Tensor) -> torch.Tensor:
         """§5.11: ω_i = V0 (1 − f_r F_z0,i / K_x(F_z0,i)) / R_e, shape [runs, 4]."""
-        from envs.vehicle14dof.tyre import longitudinal_stiffness
-
         Kx = longitudinal_stiffness(self.F_z0, self.tyre)
         return V0[:, None] * (1 - self.p.f_r * self.F_z0 / Kx) / self.p.R_e
 

@@ -48,7 +48,6 @@ MEASUREMENT_NAMES = (
     "gnss_fresh",
 )
 MEASUREMENT_UNITS = ("rad/s",) * 4 + ("rad",) + ("m/s^2",) * 3 + ("rad/s",) * 3 + ("m", "m", "m/s", "m/s", "1")
-N_NOISY = 15  # every channel but the fresh-fix flag
 
 
 class ChannelLaplaceNoise(Noise):
@@ -126,11 +125,12 @@ def clean_channels(x, delta_sw, aux: Aux, c: Constants) -> torch.Tensor:
 def sample_biases(runs, generator, p: Vehicle14DOFParams, device, dtype) -> TensorDict:
     """Constant per-run sensor errors of §8: wheel-radius scale, SAS offset, IMU biases."""
 
+    # drawn in float32 whatever the internal dtype, so float32 and float64 runs share episodes
     def rand(*shape):
-        return torch.rand(runs, *shape, generator=generator, device=device, dtype=dtype)
+        return torch.rand(runs, *shape, generator=generator, device=device).to(dtype)
 
     def randn(*shape):
-        return torch.randn(runs, *shape, generator=generator, device=device, dtype=dtype)
+        return torch.randn(runs, *shape, generator=generator, device=device).to(dtype)
 
     return TensorDict(
         {

@@ -10,20 +10,18 @@ filters (``has_model = False``): ``f`` and ``g`` keep raising ``NotImplementedEr
 
 from __future__ import annotations
 
-
 import torch
 from tensordict import TensorDict
 
 from envs.noise import GaussianMixtureNoise, GaussianNoise
 from envs.system import StochasticSystem
 from envs.vehicle14dof.dynamics import N_STATE, rhs
-from envs.vehicle14dof.integrate import drive_inputs, integrate_substeps
+from envs.vehicle14dof.integrate import drive_inputs, integrate_substeps, make_substep
 from envs.vehicle14dof.manoeuvre import sample_manoeuvre
 from envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
 from envs.vehicle14dof.sensors import (
     MEASUREMENT_NAMES,
     MEASUREMENT_UNITS,
-    N_NOISY,
     ChannelLaplaceNoise,
     clean_channels,
     laplace_scale,
@@ -73,6 +71,7 @@ class Vehicle14DOF(StochasticSystem):
         if self.n_sub < 1 or abs(self.n_sub * p.h - p.dt) > 1e-9:
             raise ValueError(f"the filter step dt={p.dt} must be a whole number of RK4 steps h={p.h}")
         self._consts: dict[str, Constants] = {}
+        self._substeps: dict[str, object] = {}
         self.report_scale = torch.tensor([1 / DEG, 1 / DEG, 1 / DEG, 1 / DEG, 1 / KMH, 1 / G])
         # Rough RMSE of a good filter, in report units [0.1°, 0.2°, 0.5°/s, 0.2°, 0.3 km/h, 0.01 g],
         # converted to SI; the env's reward weights are W = 1/(n·s²) so per-step rewards are O(1).
@@ -95,6 +94,13 @@ class Vehicle14DOF(StochasticSystem):
             self._consts[key] = Constants(self.p, self.dtype, device)
         return self._consts[key]
 
+    def substep(self, device):
+        """The RK4 step function for ``device`` (compiled once if ``params.compile``)."""
+        key = str(torch.device(device))
+        if key not in self._substeps:
+            self._substeps[key] = make_substep(self.constants(device), self.p.h, self.p.compile)
+        return self._substeps[key]
+
     def to(self, device):
         super().to(device)
         self._laplace.to(device)
@@ -115,12 +121,12 @@ class Vehicle14DOF(StochasticSystem):
         delta_sw, T_d, T_b, _ = drive_inputs(x, zeros, zeros, man, c, self.p.h)
         _, aux = rhs(x, delta_sw, T_d, T_b, torch.zeros(200, 2, dtype=torch.float64), c, with_aux=True)
         s = truth(x, aux.a_x)
-        std = torch.maximum(s.std(0), 0.01 * self.error_scale.double())
+        std = torch.maximum(s.std(0, correction=0), 0.01 * self.error_scale.double())
         return GaussianNoise.diagonal(s.mean(0).float(), std.float())
 
     def _observe(self, x, integ, t, man, dist, c: Constants):
         """Truth and clean channels at step t; the inputs are those of the next RK4 step (k1)."""
-        delta_sw, T_d, T_b, _ = drive_inputs(x, integ, t * self.dt, man, c, self.p.h)
+        delta_sw, T_d, T_b, _ = drive_inputs(x, integ, (t * self.dt).to(self.dtype), man, c, self.p.h)
         _, aux = rhs(x, delta_sw, T_d, T_b, dist, c, with_aux=True)
         return truth(x, aux.a_x), clean_channels(x, delta_sw, aux, c)
 
@@ -161,7 +167,15 @@ class Vehicle14DOF(StochasticSystem):
         c = self.constants(device)
         man = sim["params", "manoeuvre"]
         x, integ = integrate_substeps(
-            sim["x"], sim["integral"], sim["t"] * self.dt, self.n_sub, man, sim["disturbance"], c, self.p.h
+            sim["x"],
+            sim["integral"],
+            (sim["t"] * self.dt).to(self.dtype),
+            self.n_sub,
+            man,
+            sim["disturbance"],
+            c,
+            self.p.h,
+            self.substep(device),
         )
         t = sim["t"] + 1
         dist = self._disturbance(runs, generator, device)
@@ -184,5 +198,3 @@ class Vehicle14DOF(StochasticSystem):
         info["rk4_step"] = self.p.h
         info["dtype"] = self.p.dtype
         return info
-
-

@@ -1,0 +1,110 @@
+"""Learned filters: closed-loop ``run`` equals an env rollout, checkpoints, bounds, bad input."""
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from daof.filters.learned import FilterConfig, LearnedFilter, load_filter, sliding_windows
+from envs import make_env
+
+
+def small(kind, window=4, system="veh2dof"):
+    f = LearnedFilter(FilterConfig(kind=kind, system=system, window=window, num_cells=16))
+    f.fit_normalizer(runs=4, steps=50)
+    return f.eval()
+
+
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2"])
+def test_offline_run_equals_env_rollout(kind):
+    """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed."""
+    f = small(kind)
+    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=30)
+    with torch.no_grad():
+        rollout = env.rollout(30, f.filter_module(), break_when_any_done=False)
+    offline = f.run(f.system.simulate(3, 30, seed=11))
+    torch.testing.assert_close(offline, rollout["action"], rtol=0, atol=0)
+
+
+def test_exploration_policy_deterministic_mode_is_the_filter():
+    """The collector's policy in deterministic mode is the deterministic filter (squashed loc)."""
+    f = small("DAOF-v1")
+    env = make_env("veh2dof", batch_size=2, window=4, seed=5, max_steps=10)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        a = env.rollout(10, f.exploration_policy(), break_when_any_done=False)["action"]
+    env = make_env("veh2dof", batch_size=2, window=4, seed=5, max_steps=10)
+    with torch.no_grad():
+        b = env.rollout(10, f.filter_module(), break_when_any_done=False)["action"]
+    torch.testing.assert_close(a, b)
+
+
+def test_v1_correction_is_bounded_and_added_to_prediction():
+    """DAOF-v1: x̂_t − f(x̂_{t−1}, u_{t−1}) stays within ± correction_sigmas·sqrt(diag Q)."""
+    f = small("DAOF-v1")
+    env = make_env("veh2dof", batch_size=4, window=4, seed=3, max_steps=20)
+    with torch.no_grad():
+        td = env.rollout(20, f.exploration_policy(), break_when_any_done=False)
+    pred = f.system.f(td["prev_estimate"], td["prev_control"])
+    torch.testing.assert_close(td["action"] - pred, td["correction"], atol=1e-6, rtol=0)
+    half = 10.0 * f.system.process_noise.covariance.diagonal().sqrt()
+    assert (td["correction"].abs() <= half + 1e-6).all()
+
+
+def test_sliding_windows_pad_like_catframes():
+    """Open-loop windows: oldest first, the first frame repeated N−1 times in front."""
+    frames = torch.arange(4.0).reshape(1, 4, 1)
+    w = sliding_windows(frames, 3)[0]
+    assert w.tolist() == [[0, 0, 0], [0, 0, 1], [0, 1, 2], [1, 2, 3]]
+
+
+def test_slf_is_open_loop_and_vectorised():
+    """SLF reads no fed-back estimate: its windows hold measurements and controls only."""
+    f = small("SLF", window=5)
+    assert f.frame_dim == f.system.measurement_dim + 2 * f.system.control_dim
+    data = f.system.simulate(2, 40, seed=1)
+    est = f.run(data)
+    assert est.shape == (2, 40, 2) and torch.isfinite(est).all()
+    # the estimate at t depends only on the last N measurement frames
+    changed = data.clone()
+    changed["measurement"][:, :10] += 1.0
+    torch.testing.assert_close(f.run(changed)[:, 15:], est[:, 15:])
+
+
+def test_checkpoint_round_trip(tmp_path):
+    f = small("DAOF-v2")
+    f.save(tmp_path / "f.pt", extra={"note": 1})
+    g = load_filter(tmp_path / "f.pt", expect={"system": "veh2dof", "window": 4})
+    data = f.system.simulate(2, 20, seed=2)
+    torch.testing.assert_close(f.run(data), g.run(data))
+    assert g.extra == {"note": 1}
+
+
+def test_checkpoint_errors(tmp_path):
+    f = small("DAOF-v2")
+    f.save(tmp_path / "f.pt")
+    with pytest.raises(ValueError, match="window=4, expected 20"):
+        load_filter(tmp_path / "f.pt", expect={"window": 20})
+    with pytest.raises(ValueError, match="system='veh2dof', expected 'linear'"):
+        load_filter(tmp_path / "f.pt", expect={"system": "linear"})
+    with pytest.raises(FileNotFoundError, match="no filter checkpoint"):
+        load_filter(tmp_path / "missing.pt")
+    torch.save({"something": 1}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not a learned-filter checkpoint"):
+        load_filter(tmp_path / "other.pt")
+
+
+def test_bad_config():
+    with pytest.raises(ValueError, match="unknown filter kind"):
+        FilterConfig(kind="DAOF-v3", system="veh2dof")
+    with pytest.raises(ValueError, match="window must be an integer"):
+        FilterConfig(kind="DAOF-v1", system="veh2dof", window=0)
+
+
+def test_run_rejects_bad_data():
+    f = small("DAOF-v2")
+    data = f.system.simulate(2, 10, seed=0)
+    bad = data.clone()
+    bad["control"][0, 3] = float("nan")
+    with pytest.raises(ValueError, match="control"):
+        f.run(bad)
+    with pytest.raises(ValueError, match="measurement"):
+        f.run(data.exclude("measurement"))
