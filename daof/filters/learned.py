@@ -82,6 +82,10 @@ class PolicyNet(nn.Module):
         loc, log_std = self.mlp(self.normalize(window)).chunk(2, -1)
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
+    def loc(self, window: torch.Tensor) -> torch.Tensor:
+        """The pre-squash mean only (the deterministic filter needs nothing else)."""
+        return self.mlp(self.normalize(window)).chunk(2, -1)[0]
+
 
 def sliding_windows(frames: torch.Tensor, window: int) -> torch.Tensor:
     """[runs, steps, F] frames -> [runs, steps, N·F] windows, oldest first, padded like CatFrames.
@@ -158,8 +162,7 @@ class LearnedFilter(nn.Module, Filter):
 
     def estimate(self, window, prev_estimate=None, prev_control=None) -> torch.Tensor:
         """Deterministic estimate x̂_t (the squashed loc, plus the prediction for DAOF-v1)."""
-        loc, _ = self.policy(window)
-        out = self.squash(loc)
+        out = self.squash(self.policy.loc(window))
         if self.config.kind == "DAOF-v1":
             out = out + self.predict(prev_estimate, prev_control)
         return out
@@ -220,17 +223,14 @@ class LearnedFilter(nn.Module, Filter):
             return self.estimate(sliding_windows(self.open_loop_frames(y, u, u_prev), N))
         runs, steps = y.shape[:2]
         prev = s.prior.mean.to(y.device).expand(runs, -1).clone()
-        frames: list[torch.Tensor] = []
+        measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]
+        width = self.frame_dim
         out = torch.empty(runs, steps, s.state_dim, device=y.device)
+        window = None
         for t in range(steps):
-            parts = [prev] if self.closed_loop else []
-            parts.append(y[:, t])
-            if self.uses_controls:
-                parts += [u[:, t], u_prev[:, t]]
-            frames.append(torch.cat(parts, -1))
-            if len(frames) > N:
-                frames.pop(0)
-            window = torch.cat([frames[0]] * (N - len(frames)) + frames, -1)
+            frame = torch.cat([prev, measured[:, t]], -1)
+            # slide the window by one frame; right after the reset it is N copies of frame 1
+            window = frame.repeat(1, N) if window is None else torch.cat([window[:, width:], frame], -1)
             prev = self.estimate(window, prev, u_prev[:, t])
             out[:, t] = prev
         return out

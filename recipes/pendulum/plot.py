@@ -36,12 +36,27 @@ def load_runs(log_dir: Path) -> dict[str, dict[str, tuple[np.ndarray, np.ndarray
     return runs
 
 
+def print_table(log_dir: Path, runs: dict) -> None:
+    """Markdown rows: per-seed final return and wall time, then mean ± std per loss."""
+    print("| loss | run | final return (15k steps) | wall time [min] |\n|---|---|---|---|")
+    for loss, by_run in sorted(runs.items()):
+        finals = []
+        for run, (steps, values) in sorted(by_run.items()):
+            wall_path = log_dir / run / "scalars" / "final" / "wall_time.csv"
+            wall = f"{read_scalar(wall_path)[1][-1] / 60:.1f}" if wall_path.exists() else "running"
+            finals.append(values[-1])
+            print(f"| {loss} | {run} | {values[-1]:.1f} (at {steps[-1]}) | {wall} |")
+        std = np.std(finals, ddof=1) if len(finals) > 1 else float("nan")
+        print(f"| {loss} | mean ± std over {len(finals)} | {np.mean(finals):.1f} ± {std:.1f} | |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--log-dir", type=Path, default=Path("runs/pendulum"))
     parser.add_argument("--out", type=Path, default=Path("docs/figures/pendulum_returns.png"))
     parser.add_argument("--bar", type=float, default=-200.0, help="the spec's pass line")
     args = parser.parse_args()
+    print_table(args.log_dir, load_runs(args.log_dir))
 
     fig, ax = plt.subplots(figsize=(7, 4.2))
     for color, (loss, runs) in zip(("C0", "C1", "C2"), sorted(load_runs(args.log_dir).items())):
