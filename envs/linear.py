@@ -93,9 +93,7 @@ class LinearOscillator(StochasticSystem):
         lo, hi = p.force_period_s
         period = lo + (hi - lo) * torch.rand(runs, generator=generator, device=device)
         phase = 2 * math.pi * torch.rand(runs, generator=generator, device=device)
-        return TensorDict(
-            {"amplitude": amplitude, "period": period, "phase": phase}, batch_size=[runs], device=device
-        )
+        return TensorDict({"amplitude": amplitude, "period": period, "phase": phase}, batch_size=[runs], device=device)
 
     def control(self, t, params):
         angle = 2 * math.pi * t * self.dt / params["period"] + params["phase"]

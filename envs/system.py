@@ -113,9 +113,7 @@ class StochasticSystem:
         t_next = sim["t"] + 1
         u_next = self.control(t_next, params)
         y_next = self.measure(x_next, u_next, params, generator)
-        new_sim = TensorDict(
-            {"x": x_next, "t": t_next, "u": u_next, "params": params}, batch_size=sim.batch_size
-        )
+        new_sim = TensorDict({"x": x_next, "t": t_next, "u": u_next, "params": params}, batch_size=sim.batch_size)
         obs = TensorDict(
             {
                 "state": self.truth(x_next),

@@ -74,13 +74,9 @@ class Vehicle2DOF(StochasticSystem):
         self.p = p = params or Vehicle2DOFParams()
         self.dt = p.dt
         self.prior = GaussianNoise.diagonal([0.0, 0.0], p.prior_std)
-        self.process_noise = GaussianMixtureNoise(
-            p.mixture_weights, p.mixture_means, p.mixture_stds, p.process_scale
-        )
+        self.process_noise = GaussianMixtureNoise(p.mixture_weights, p.mixture_means, p.mixture_stds, p.process_scale)
         if scenario == "outliers":
-            self.measurement_noise = OutlierLaplaceNoise(
-                p.measurement_scale, p.outlier_prob, p.outlier_magnitude
-            )
+            self.measurement_noise = OutlierLaplaceNoise(p.measurement_scale, p.outlier_prob, p.outlier_magnitude)
         else:
             self.measurement_noise = LaplaceNoise(p.measurement_scale)
         self.state_low = torch.tensor([-0.3, -1.5])

@@ -130,9 +130,7 @@ class DSACTLoss(LossModule):
         self.delay_qvalue = delay_qvalue
         self.num_qvalue_nets = num_qvalue_nets
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
-        self.convert_to_functional(
-            qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=delay_qvalue
-        )
+        self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=delay_qvalue)
         self.xi, self.epsilon, self.tau_b, self.sample_clip = xi, epsilon, tau_b, sample_clip
         device = next(iter(self.actor_network_params.values(True, True))).device
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(alpha_init), device=device))
@@ -143,7 +141,7 @@ class DSACTLoss(LossModule):
         self._target_entropy_arg = target_entropy
         self._action_spec = action_spec
         self._target_entropy = None
-        self._vmap_qnetworkN0 = _vmap_func(self.qvalue_network, (None, 0), randomness=self.vmap_randomness)
+        self._make_vmap()
         # Like SACLoss: default the action / log-prob keys to what the actor samples.
         sample_keys = getattr(self.actor_network, "dist_sample_keys", [])
         log_prob_keys = getattr(self.actor_network, "log_prob_keys", [])
@@ -153,6 +151,7 @@ class DSACTLoss(LossModule):
             self.set_keys(log_prob=log_prob_keys[0])
 
     def _make_vmap(self):
+        """The critic ensemble in one call: the input is shared, the parameters stacked on dim 0."""
         self._vmap_qnetworkN0 = _vmap_func(self.qvalue_network, (None, 0), randomness=self.vmap_randomness)
 
     # ------------------------------------------------------------------ keys and estimators

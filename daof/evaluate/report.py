@@ -135,7 +135,8 @@ def write_report(
     lines = [f"# {title}", ""]
     if profile != "paper":
         lines += [
-            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; not the paper-size study.",
+            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; "
+            "not the paper-size study.",
             "",
         ]
     lines += [
@@ -170,9 +171,8 @@ def write_report(
             "|---|---|---|---|---|",
         ]
         for name, t in training.items():
-            lines.append(
-                f"| {name} | {t.get('frames', '–'):,} | {t.get('updates', '–'):,} | {t.get('wall_s', '–')} | {t.get('threads', '–')} |"
-            )
+            frames, updates = (f"{t[k]:,}" if k in t else "–" for k in ("frames", "updates"))
+            lines.append(f"| {name} | {frames} | {updates} | {t.get('wall_s', '–')} | {t.get('threads', '–')} |")
         lines.append("")
     if s.name == "veh2dof":
         lines += [

@@ -119,6 +119,9 @@ class LearnedFilter(nn.Module, Filter):
             low, high = s.state_low.clone(), s.state_high.clone()
         self.register_buffer("low", low.float())
         self.register_buffer("high", high.float())
+        # every estimate stays in the system's plausible state range (the env's action spec)
+        self.register_buffer("state_low", s.state_low.clone().float())
+        self.register_buffer("state_high", s.state_high.clone().float())
 
     # ----------------------------------------------------------------- shapes
     @property
@@ -164,7 +167,7 @@ class LearnedFilter(nn.Module, Filter):
         """Deterministic estimate x̂_t (the squashed loc, plus the prediction for DAOF-v1)."""
         out = self.squash(self.policy.loc(window))
         if self.config.kind == "DAOF-v1":
-            out = out + self.predict(prev_estimate, prev_control)
+            out = self._add_prediction(out, prev_estimate, prev_control)
         return out
 
     forward = estimate
@@ -184,7 +187,13 @@ class LearnedFilter(nn.Module, Filter):
         )
 
     def _add_prediction(self, correction, prev_estimate, prev_control):
-        return correction + self.predict(prev_estimate, prev_control)
+        """x̂_t = f(x̂_{t−1}, u_{t−1}) + correction, kept in the plausible state range.
+
+        Without the clamp an untrained update can push the predictor outside the region where
+        the vehicle model is stable, and the estimate then runs away for the rest of the episode.
+        """
+        estimate = correction + self.predict(prev_estimate, prev_control)
+        return torch.minimum(torch.maximum(estimate, self.state_low), self.state_high)
 
     def exploration_policy(self) -> TensorDictSequential:
         """What a collector runs: sample from π and, for DAOF-v1, add the prediction."""

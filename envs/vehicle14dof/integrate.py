@@ -39,8 +39,8 @@ def make_substep(c: Constants, h: float, compile: bool = False):
     """One RK4 step with the driver and steering evaluated at its start (plain tensors in and out).
 
     ``compile=True`` wraps it in ``torch.compile`` (inductor, one fused kernel per step): measured
-    2–14× faster than eager depending on batch, after a one-time compile of about a minute on
-    this machine (docs/benchmarks/veh14dof.md), so it is opt-in.
+    1.7× (batch 1024) to 5.6× (batch 1) faster than eager, after a first compile of about 80 s per
+    batch size on this machine (docs/benchmarks/veh14dof.md), so it is opt-in.
     """
 
     def substep(x, integ, time, v_ref, amplitude, t1, t2, dist):

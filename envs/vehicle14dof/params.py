@@ -65,7 +65,8 @@ class Vehicle14DOFParams:
     # §6 integration: RK4 step inside the filter step Δt
     h: float = 0.001
     dt: float = 0.02
-    # float32 is accurate to well inside the App. A tolerances (tests/test_vehicle14dof.py)
+    # float32 (default) matches every App. A row within ±1 % at h = 1 ms and differs from float64 by
+    # ~4e-5 m/s in V_x, ~1e-4 m/s² in a_x (docs/benchmarks/veh14dof.md); float64 for T1/T3 exactness
     dtype: str = "float32"
     # torch.compile the RK4 step (opt-in: about a minute of compile time, see integrate.make_substep)
     compile: bool = False
