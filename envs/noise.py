@@ -3,7 +3,9 @@
 Every noise here is a vector distribution over ``dim`` independent or jointly Gaussian axes and
 offers what a simulator and a filter need: batched ``sample(shape, generator)`` that is
 reproducible from a ``torch.Generator``, ``log_prob`` (exact density, for the particle filter),
-``mean`` and ``covariance`` (what a Kalman-type filter uses as Q or R).
+``mean`` and ``covariance`` (what a Kalman-type filter uses as Q or R), and
+``marginal_log_prob`` (the density of the present channels only, for a particle filter whose
+measurement has missing channels, docs/missing_data.md).
 
 Densities, means and variances come from ``torch.distributions``; sampling is written here
 because ``torch.distributions`` cannot draw from an explicit ``torch.Generator``.
@@ -41,6 +43,22 @@ class Noise:
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
         """Log-density of ``[..., dim]`` values, summed over the ``dim`` axes -> ``[...]``."""
         raise NotImplementedError
+
+    def channel_log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        """Log-density of each axis on its own -> ``[..., dim]``; ``log_prob`` is their sum.
+
+        Only noises whose axes are independent have it.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no per-axis density (its axes are not independent)")
+
+    def marginal_log_prob(self, value: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """Log-density of the present axes only (the missing ones marginalised out) -> ``[...]``.
+
+        ``present`` is a bool mask broadcastable to ``value``; missing entries of ``value`` may be
+        NaN. For independent axes the marginal is the sum of ``channel_log_prob`` over the present
+        axes; nothing present gives 0 (no information).
+        """
+        return torch.where(present, self.channel_log_prob(value), 0.0).sum(-1)
 
     @property
     def mean(self) -> torch.Tensor:
@@ -90,6 +108,28 @@ class GaussianNoise(Noise):
 
     def log_prob(self, value):
         return D.MultivariateNormal(self.loc, scale_tril=self.scale_tril).log_prob(value)
+
+    def _is_diagonal(self) -> bool:
+        return bool((self.cov == torch.diag(self.cov.diagonal())).all())
+
+    def channel_log_prob(self, value):
+        if not self._is_diagonal():
+            return super().channel_log_prob(value)
+        return D.Normal(self.loc, self.cov.diagonal().sqrt()).log_prob(value)
+
+    def marginal_log_prob(self, value, present):
+        if self._is_diagonal():
+            return super().marginal_log_prob(value, present)
+        # correlated axes: the marginal of the present axes is N(loc[S], cov[S, S]), one per pattern S
+        present = torch.broadcast_to(present, value.shape)
+        out = value.new_zeros(value.shape[:-1])
+        for pattern in torch.unique(present.reshape(-1, self.dim), dim=0):
+            rows = (present == pattern).all(-1)
+            idx = pattern.nonzero().squeeze(-1)
+            if idx.numel():
+                marginal = D.MultivariateNormal(self.loc[idx], self.cov[idx][:, idx])
+                out[rows] = marginal.log_prob(value[rows][:, idx])
+        return out
 
     @property
     def mean(self):
@@ -141,6 +181,9 @@ class GaussianMixtureNoise(Noise):
     def log_prob(self, value):
         return self._dist().log_prob(value)
 
+    def channel_log_prob(self, value):
+        return self._dist().base_dist.log_prob(value)
+
     @property
     def mean(self):
         return (self.weights * self.means).sum(-1) * self.scale
@@ -170,8 +213,11 @@ class LaplaceNoise(Noise):
         v = torch.rand(self._shape(shape), generator=generator, device=self._device()) - 0.5
         return self.loc - self.b * v.sign() * torch.log1p(-2 * v.abs())
 
+    def channel_log_prob(self, value):
+        return self._laplace(value)
+
     def log_prob(self, value):
-        return self._laplace(value).sum(-1)
+        return self.channel_log_prob(value).sum(-1)
 
     @property
     def mean(self):
@@ -202,7 +248,7 @@ class OutlierLaplaceNoise(LaplaceNoise):
         sign = torch.where(torch.rand(base.shape, generator=generator, device=base.device) < 0.5, -1.0, 1.0)
         return base + (u < self.prob) * sign * self.magnitude * self.b
 
-    def log_prob(self, value):
+    def channel_log_prob(self, value):
         offset = self.magnitude * self.b
         p = self.prob
         terms = torch.stack(
@@ -212,7 +258,7 @@ class OutlierLaplaceNoise(LaplaceNoise):
                 math.log(p / 2) + self._laplace(value, -offset) if p > 0 else self._laplace(value) - math.inf,
             ]
         )
-        return torch.logsumexp(terms, 0).sum(-1)
+        return torch.logsumexp(terms, 0)
 
     @property
     def covariance(self):

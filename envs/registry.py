@@ -18,11 +18,13 @@ def register_system(name: str, cls, params_cls) -> None:
     SYSTEMS[name] = (cls, params_cls)
 
 
-def make_system(name: str, scenario: str = "nominal", **overrides) -> StochasticSystem:
+def make_system(name: str, scenario: str = "nominal", replay=None, **overrides) -> StochasticSystem:
     """Build a system by name (``veh2dof``, ``veh14dof``, ``linear``).
 
     ``overrides`` replace fields of the system's parameter dataclass; an unknown name, scenario
-    or field is a ``ValueError`` that lists what is valid.
+    or field is a ``ValueError`` that lists what is valid. ``replay`` (a mapping of
+    ``RecordedSystem``'s ``runs``, ``steps``, ``seed``, ``cache_dir``) wraps the system so that env
+    episodes replay a recorded bank and ``simulate`` is memoised (``envs.recorded``).
     """
     if name not in SYSTEMS:
         raise ValueError(f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}")
@@ -33,4 +35,9 @@ def make_system(name: str, scenario: str = "nominal", **overrides) -> Stochastic
     unknown = sorted(set(overrides) - valid)
     if unknown:
         raise ValueError(f"unknown parameter(s) {unknown} for {name}; valid: {sorted(valid)}")
-    return cls(scenario=scenario, params=params_cls(**overrides))
+    system = cls(scenario=scenario, params=params_cls(**overrides))
+    if replay:
+        from envs.recorded import RecordedSystem
+
+        system = RecordedSystem.from_mapping(system, replay)
+    return system

@@ -86,6 +86,8 @@ class Vehicle2DOF(StochasticSystem):
         l = p.lf + p.lr
         self.Fzf = p.m * p.g * p.lr / l
         self.Fzr = p.m * p.g * p.lf / l
+        self._Fz = torch.tensor([self.Fzf, self.Fzr], dtype=torch.float64)
+        self._slip_map = torch.tensor([[1.0, 1.0], [p.lf / p.vx, -p.lr / p.vx]], dtype=torch.float64)
 
     # ----------------------------------------------------------------- physics
     def _tyre(self, alpha, Fz, mu, B):
@@ -95,14 +97,13 @@ class Vehicle2DOF(StochasticSystem):
         return -mu * Fz * torch.sin(p.C * torch.atan(Ba - p.E * (Ba - torch.atan(Ba))))
 
     def _forces(self, x, u, mu, B):
-        p = self.p
-        beta, r = x[..., 0], x[..., 1]
+        """(front lateral force along the body axis, rear lateral force); both axles at once."""
         delta = u[..., 0]
-        alpha_f = beta + p.lf * r / p.vx - delta
-        alpha_r = beta - p.lr * r / p.vx
-        Fyf = self._tyre(alpha_f, self.Fzf, mu, B)
-        Fyr = self._tyre(alpha_r, self.Fzr, mu, B)
-        return Fyf * torch.cos(delta), Fyr
+        # slip angles [α_f, α_r] = x @ [[1, 1], [l_f/v_x, −l_r/v_x]] − [δ, 0]
+        slip = x @ self._slip_map.to(x) - torch.stack([delta, torch.zeros_like(delta)], -1)
+        mu, B = (v.unsqueeze(-1) if isinstance(v, torch.Tensor) else v for v in (mu, B))
+        Fy = self._tyre(slip, self._Fz.to(x), mu, B)
+        return Fy[..., 0] * torch.cos(delta), Fy[..., 1]
 
     def derivative(self, x, u, mu=None, B=None):
         """Continuous dynamics [β̇, ṙ]; μ and B default to the nominal model."""

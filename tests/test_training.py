@@ -1,5 +1,6 @@
 """Training runs: a checkpoint restores every piece of state exactly, and the run finishes."""
 
+import math
 from pathlib import Path
 
 import pytest
@@ -110,3 +111,16 @@ def test_slf_learns_and_resumes(tmp_path):
     assert summary["frames"] == 4000
     # raw yaw-rate measurement error is about 0.14 rad/s (Laplace b = 0.1)
     assert summary["best"]["record"]["rmse_yaw_rate"] < 0.1
+
+
+def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
+    """auto: the entropy of Gaussian noise of k error scales per state, for v1 and v2 alike."""
+    for version in ("v1", "v2"):
+        trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / version, version=version))
+        std = 0.4 * trainer.system.error_scale
+        expected = float(torch.log(std * math.sqrt(2 * math.pi * math.e)).sum())
+        assert trainer.loss.target_entropy == pytest.approx(expected)
+    cfg = tiny_cfg("config.yaml", tmp_path / "fixed", **{"loss.target_entropy": -3.0})
+    assert DSACTTrainer(cfg).loss.target_entropy == pytest.approx(-3.0)
+    with pytest.raises(ValueError, match="exploration_std must be > 0"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"loss.exploration_std": 0.0}))

@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["plot_one_run", "plot_per_run_boxes", "plot_learning_curves", "plot_window_study"]
+__all__ = ["plot_one_run", "plot_one_run_state", "plot_per_run_boxes", "plot_learning_curves", "plot_window_study"]
 
 
 def _save(fig, path: Path) -> Path:
@@ -45,12 +45,36 @@ def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
     return _save(fig, path)
 
 
-def plot_per_run_boxes(study, path: Path, names=None) -> Path:
+def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, units=None) -> Path:
+    """State ``j`` of one run: estimated vs true (top) and error over time (bottom), all filters."""
+    s = study.system
+    names = names or list(study.estimates)
+    state, unit = s.state_names[j], (units or s.state_units)[j]
+    truth = study.data["state"][run, :, j]
+    t = torch.arange(1, truth.shape[0] + 1) * s.dt
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    top.plot(t, truth, color="black", lw=1.6, label="true")
+    for name in names:
+        est = study.estimates[name][run, :, j]
+        top.plot(t, est, lw=0.9, label=name)
+        bottom.plot(t, est - truth, lw=0.8, label=name)
+    top.set_ylabel(f"{state} [{unit}]")
+    bottom.set_ylabel(f"error {state} [{unit}]")
+    bottom.set_xlabel("time [s]")
+    bottom.axhline(0, color="black", lw=0.6)
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
+    top.legend(fontsize=7, ncol=3)
+    fig.suptitle(f"{s.name} ({s.scenario}), run {run}: {state}, estimates and errors")
+    return _save(fig, path)
+
+
+def plot_per_run_boxes(study, path: Path, names=None, units=None) -> Path:
     """Box plot of per-run RMSE, one panel per state (log scale)."""
     s = study.system
     names = names or list(study.results)
     fig, axes = plt.subplots(1, s.state_dim, figsize=(max(6, 1.1 * len(names)) * s.state_dim / 1.4, 4), squeeze=False)
-    for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
+    for j, (state, unit) in enumerate(zip(s.state_names, units or s.state_units)):
         ax = axes[0, j]
         values = [[row[j] for row in study.results[n].per_run_rmse] for n in names]
         ax.boxplot(values, showfliers=True)
@@ -62,7 +86,7 @@ def plot_per_run_boxes(study, path: Path, names=None) -> Path:
     return _save(fig, path)
 
 
-def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path, references=None) -> Path:
+def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path, references=None, units=None) -> Path:
     """Validation RMSE per state against training samples / env steps for every learned filter."""
     fig, axes = plt.subplots(1, len(state_names), figsize=(5.5 * len(state_names), 3.8), squeeze=False)
     for j, state in enumerate(state_names):
@@ -76,7 +100,7 @@ def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path,
         ax.set_yscale("log")
         ax.set_xscale("symlog", linthresh=1e4)
         ax.set_xlabel("training samples (env steps)")
-        ax.set_ylabel(f"validation RMSE {state}")
+        ax.set_ylabel(f"validation RMSE {state}" + (f" [{units[j]}]" if units else ""))
         ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("learning curves (validation set)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import platform
 import subprocess
@@ -12,7 +13,7 @@ import torch
 
 from daof.evaluate import figures
 
-__all__ = ["environment_info", "write_report", "PAPER_TABLE_I"]
+__all__ = ["environment_info", "in_report_units", "write_report", "PAPER_TABLE_I", "PAPER_TABLE_II"]
 
 #: The paper's Table I (Experiment I): RMSE β [rad], RMSE r [rad/s], cost [ms]. Context only: the
 #: paper does not publish its system parameters, so the absolute numbers are not comparable.
@@ -24,6 +25,12 @@ PAPER_TABLE_I = {
     "DAOF-v1": (0.03, 0.09, 0.65),
 }
 PAPER_WINDOWS = {1: (0.29, 0.29), 5: (0.21, 0.29), 10: (0.16, 0.31), 20: (0.11, 0.34)}
+#: The paper's Table II (Experiment II, 14-DOF): RMSE pitch [°], roll [°], yaw rate [°/s], side slip
+#: [°], Vx [km/h], ax [g], cost [ms]. Context only, as for Table I.
+PAPER_TABLE_II = {
+    "SLF": (0.262, 1.863, 1.513, 0.587, 4.545, 0.020, 0.45),
+    "DAOF-v2": (0.012, 0.022, 0.082, 0.015, 0.105, 0.002, 0.63),
+}
 
 
 def environment_info() -> dict:
@@ -87,6 +94,87 @@ def _results_table(study) -> list[str]:
     return lines
 
 
+def _dropout_lines(study) -> list[str]:
+    """What was missing, when the study ran on data with measurement gaps (``run_study(dropout=...)``)."""
+    info = getattr(study, "dropout", None)
+    if info is None:
+        return []
+    names = study.system.measurement_names
+    text = f"**Sensor dropout**: every measurement channel missing (NaN) with probability {info['p']:g} per step"
+    if info.get("blackout"):
+        b = info["blackout"]
+        text += f", plus `{b['channel']}` blacked out from {b['start_s']:g} s for {b['duration_s']:g} s in every run"
+    fractions = ", ".join(f"`{n}` {100 * f:.1f} %" for n, f in zip(names, info.get("missing_fraction", [])))
+    text += f" (dropout seed {info['seed']}; measured missing: {fractions}). See docs/missing_data.md."
+    return [text, ""]
+
+
+def in_report_units(study):
+    """(study, units, scale): the study in its system's reporting units, if it has them.
+
+    A system with ``report_scale`` / ``report_units`` (veh14dof: degrees, deg/s, km/h, g) is
+    reported in those: RMSEs, per-run RMSEs, estimates and truth are multiplied by the scale (ratios
+    are unit-free). Otherwise the study is returned unchanged with ``scale = None``.
+    """
+    s = study.system
+    scale = getattr(s, "report_scale", None)
+    if scale is None:
+        return study, tuple(s.state_units), None
+    k = torch.as_tensor(scale, dtype=torch.float64).cpu()
+    results = {
+        name: dataclasses.replace(
+            r,
+            rmse=(torch.tensor(r.rmse, dtype=torch.float64) * k).tolist(),
+            per_run_rmse=(torch.tensor(r.per_run_rmse, dtype=torch.float64) * k).tolist(),
+        )
+        for name, r in study.results.items()
+    }
+    kf = k.float()
+    estimates = {name: e * kf.to(e.device) for name, e in study.estimates.items()}
+    data = study.data.clone().set("state", study.data["state"] * kf.to(study.data["state"].device))
+    view = dataclasses.replace(study, results=results, estimates=estimates, data=data)
+    return view, tuple(s.report_units), k
+
+
+def _state_columns_table(study, units) -> list[str]:
+    """The paper's Table II layout: one RMSE column per state, then cost; per-run spread below.
+
+    The ratio-to-oracle column appears only if some filter has one (no oracle on model-free
+    systems); without an oracle a diverged run is a non-finite one.
+    """
+    s = study.system
+    results = study.results
+    has_ratio = any(r.ratio_to_oracle is not None for r in results.values())
+    has_repairs = any(r.repairs for r in results.values())
+    head = ["filter", *(f"RMSE {n} [{u}]" for n, u in zip(s.state_names, units))]
+    head += ["ratio to PF-oracle"] if has_ratio else []
+    head += ["cost per estimate [ms] (batch 1)", "throughput [estimates/s] (batch R)"]
+    head += ["diverged runs" if has_ratio else "diverged runs (non-finite)"]
+    head += ["covariance repairs"] if has_repairs else []
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in results.items():
+        row = [name, *(f"{v:.4g}" for v in r.rmse)]
+        row += [_fmt(r.ratio_to_oracle, 3)] if has_ratio else []
+        row += [f"{r.cost_ms:.3f}" if r.cost_ms is not None else "–", f"{r.throughput_per_s:,.0f}", str(r.diverged)]
+        row += [str(r.repairs)] if has_repairs else []
+        lines.append("| " + " | ".join(row) + " |")
+    lines += [
+        "",
+        f"Per-run RMSE over the {study.runs} runs, median (25 %–75 %) [min–max]:",
+        "",
+        "| filter | " + " | ".join(f"{n} [{u}]" for n, u in zip(s.state_names, units)) + " |",
+        "|---|" + "---|" * s.state_dim,
+    ]
+    for name, r in results.items():
+        runs = torch.tensor(r.per_run_rmse, dtype=torch.float64)
+        q = torch.quantile(runs, torch.tensor([0.0, 0.25, 0.5, 0.75, 1.0], dtype=torch.float64), dim=0)
+        cells = [
+            f"{q[2, j]:.3g} ({q[1, j]:.3g}–{q[3, j]:.3g}) [{q[0, j]:.3g}–{q[4, j]:.3g}]" for j in range(s.state_dim)
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def write_report(
     study,
     out_dir: str | Path,
@@ -98,13 +186,22 @@ def write_report(
     training: dict[str, dict] | None = None,
     notes: list[str] | None = None,
     meta: dict | None = None,
+    per_state: bool = False,
 ) -> Path:
-    """Write ``report.md``, ``results.csv``, ``results.json`` and figures into ``out_dir``."""
+    """Write ``report.md``, ``results.csv``, ``results.json`` and figures into ``out_dir``.
+
+    Numbers are in the system's reporting units where it has them (``in_report_units``).
+    ``per_state``: the paper's Table II layout (one column per state, a per-run spread table) and
+    one state/error figure per state instead of one figure of all states.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     s = study.system
+    study, units, scale = in_report_units(study)
     info = {**environment_info(), **(meta or {})}
     payload = {"profile": profile, **study.to_json(), **info}
+    if scale is not None:
+        payload.update(units=list(units), si_units=list(s.state_units), unit_scale=scale.tolist())
     if window_rows:
         payload["window_study"] = window_rows
     if training:
@@ -114,7 +211,7 @@ def write_report(
         writer = csv.writer(fh)
         writer.writerow(
             ["filter"]
-            + [f"rmse_{n}" for n in s.state_names]
+            + [f"rmse_{n}" if scale is None else f"rmse_{n} [{u}]" for n, u in zip(s.state_names, units)]
             + [f"ratio_{n}" for n in s.state_names]
             + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
         )
@@ -122,13 +219,25 @@ def write_report(
             ratio = r.ratio_to_oracle or [None] * s.state_dim
             writer.writerow([name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs])
 
-    figs = {
-        "one run": figures.plot_one_run(study, out / "run0_states_errors.png"),
-        "per-run RMSE": figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png"),
-    }
+    if per_state:
+        figs = {
+            f"run 0: {n}": figures.plot_one_run_state(study, j, out / f"run0_{n}.png", units=units)
+            for j, n in enumerate(s.state_names)
+        }
+    else:
+        figs = {"one run": figures.plot_one_run(study, out / "run0_states_errors.png")}
+    figs["per-run RMSE"] = figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png", units=units)
     if curves:
         refs = {k: study.results[k].rmse for k in ("UKF", "PF-oracle") if k in study.results}
-        figs["learning curves"] = figures.plot_learning_curves(curves, s.state_names, out / "learning_curves.png", refs)
+        if scale is not None:  # validation RMSEs are logged in SI units
+            k = scale.tolist()
+            curves = {
+                name: [{**h, **{f"rmse_{n}": h[f"rmse_{n}"] * k[j] for j, n in enumerate(s.state_names)}} for h in hist]
+                for name, hist in curves.items()
+            }
+        figs["learning curves"] = figures.plot_learning_curves(
+            curves, s.state_names, out / "learning_curves.png", refs, units=units if scale is not None else None
+        )
     if window_rows:
         figs["window study"] = figures.plot_window_study(window_rows, s.state_names, out / "window_study.png")
 
@@ -145,9 +254,10 @@ def write_report(
         "and starts from the prior. Cost per estimate: median wall time per step of one trajectory streamed "
         f"through the filter's own loop after a warm-up, torch threads = {next(iter(study.results.values())).threads}.",
         "",
+        *_dropout_lines(study),
         "## Results",
         "",
-        *_results_table(study),
+        *(_state_columns_table(study, units) if per_state else _results_table(study)),
         "",
     ]
     if window_rows:
@@ -184,6 +294,19 @@ def write_report(
             "| filter | RMSE β [rad] | RMSE r [rad/s] | cost [ms] |",
             "|---|---|---|---|",
             *[f"| {k} | {v[0]} | {v[1]} | {v[2]} |" for k, v in PAPER_TABLE_I.items()],
+            "",
+        ]
+    elif s.name == "veh14dof":
+        lines += [
+            "## The paper's Table II, for context",
+            "",
+            "The paper does not publish its vehicle parameters, manoeuvre or sensor set-up; its absolute numbers are "
+            "not comparable with ours, only the ordering and ratios between filters are.",
+            "",
+            "| filter | RMSE pitch [deg] | roll [deg] | yaw rate [deg/s] | side slip [deg] | Vx [km/h] | ax [g] "
+            "| cost [ms] |",
+            "|---|---|---|---|---|---|---|---|",
+            *["| " + " | ".join([k, *map(str, v)]) + " |" for k, v in PAPER_TABLE_II.items()],
             "",
         ]
     if notes:

@@ -3,10 +3,14 @@
 The data set is generated once from the evaluation seed and every filter sees exactly the same
 true states, measurements and controls. Each filter's result (metrics and estimates) is cached
 in ``cache_dir`` as soon as it is finished, so an interrupted study restarts where it stopped.
+With ``dropout`` (``daof.evaluate.dropout.Dropout``) the measurements of that data set get NaN
+gaps before any filter sees them; the cache keeps those results apart from the complete-data ones.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -14,6 +18,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
 from envs.system import StochasticSystem
@@ -50,9 +55,12 @@ class Study:
     data: TensorDict
     results: dict[str, FilterResult]
     estimates: dict[str, torch.Tensor]
+    #: ``Dropout.describe()`` plus the measured ``missing_fraction`` per channel; None: complete data
+    dropout: dict | None = None
 
     def to_json(self) -> dict:
         s = self.system
+        extra = {"dropout": self.dropout} if self.dropout is not None else {}
         return {
             "system": s.name,
             "scenario": s.scenario,
@@ -61,12 +69,16 @@ class Study:
             "seed": self.seed,
             "states": list(s.state_names),
             "units": list(s.state_units),
+            **extra,
             "filters": {name: asdict(r) for name, r in self.results.items()},
         }
 
 
-def _cache_path(cache_dir: Path, name: str) -> Path:
-    return cache_dir / (re.sub(r"[^A-Za-z0-9_.=-]+", "_", name) + ".pt")
+def _cache_path(cache_dir: Path, name: str, dropout: dict | None = None) -> Path:
+    stem = re.sub(r"[^A-Za-z0-9_.=-]+", "_", name)
+    if dropout is not None:  # a file of its own, so complete and dropout studies can share cache_dir
+        stem += "@dropout-" + hashlib.sha1(json.dumps(dropout, sort_keys=True).encode()).hexdigest()[:10]
+    return cache_dir / (stem + ".pt")
 
 
 def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: bool) -> tuple[FilterResult, torch.Tensor]:
@@ -100,20 +112,35 @@ def run_study(
     measure_cost: bool = True,
     cache_dir: str | Path | None = None,
     log=print,
+    dropout: Dropout | None = None,
+    versions: dict[str, str] | None = None,
 ) -> Study:
-    """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set."""
+    """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set.
+
+    ``dropout``: filter the same simulated data with the measurement gaps it describes instead.
+    ``versions``: per filter name, a string that identifies its weights (e.g. a checkpoint digest);
+    it is part of the cache key, so a retrained filter is evaluated again instead of reused.
+    """
     data = system.simulate(runs, steps, seed)
     key = {"system": system.name, "scenario": system.scenario, "runs": runs, "steps": steps, "seed": seed}
+    dropout_info = None
+    if dropout is not None:
+        data = dropout.apply(data, system)
+        key["dropout"] = dropout.describe()
+        missing = torch.isnan(data["measurement"]).double().mean((0, 1)).tolist()
+        dropout_info = {**key["dropout"], "missing_fraction": missing}
+        log(f"dropout {key['dropout']}: missing fraction per channel " + ", ".join(f"{m:.3f}" for m in missing))
     cache = Path(cache_dir) if cache_dir is not None else None
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
     results: dict[str, FilterResult] = {}
     estimates: dict[str, torch.Tensor] = {}
     for i, (name, filt) in enumerate(filters.items(), 1):
-        path = _cache_path(cache, name) if cache is not None else None
+        path = _cache_path(cache, name, key.get("dropout")) if cache is not None else None
+        filter_key = {**key, "version": (versions or {}).get(name)}
         if path is not None and path.is_file():
             blob = torch.load(path, weights_only=False)
-            if blob["key"] == key:
+            if blob["key"] == filter_key:
                 results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
                 log(f"[{i}/{len(filters)}] {name}: reused finished result ({path})")
                 continue
@@ -124,9 +151,9 @@ def run_study(
         cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"
         log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s")
         if path is not None:
-            torch.save({"key": key, "result": asdict(result), "estimates": est}, path)
+            torch.save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
     _add_oracle_metrics(results)
-    return Study(system, runs, steps, seed, data, results, estimates)
+    return Study(system, runs, steps, seed, data, results, estimates, dropout=dropout_info)
 
 
 def _add_oracle_metrics(results: dict[str, FilterResult]) -> None:

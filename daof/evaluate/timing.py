@@ -1,7 +1,7 @@
 """Computational cost of a filter, measured the way the protocol defines it.
 
 Cost per estimate: mean wall time of one filter update for one trajectory (batch 1), streaming
-step by step through the filter's own ``run`` loop, after a warm-up, with a stated torch thread
+step by step through the filter's ``run_streaming`` loop, after a warm-up, with a stated torch thread
 count. Throughput: estimates per second when the filter runs all runs of the study at once.
 """
 
@@ -33,13 +33,13 @@ class threads:
 def cost_per_estimate(filt, data: TensorDictBase, warmup_steps: int = 50, min_seconds: float = 1.0) -> float:
     """Milliseconds per estimate at batch 1 (first run of ``data``), median of repeated passes."""
     one = data[:1]
-    filt.run(one[:, : min(warmup_steps, one.shape[1])])
+    filt.run_streaming(one[:, : min(warmup_steps, one.shape[1])])
     steps = one.shape[1]
     samples = []
     spent = 0.0
     while spent < min_seconds or len(samples) < 3:
         start = time.perf_counter()
-        filt.run(one)
+        filt.run_streaming(one)
         elapsed = time.perf_counter() - start
         samples.append(elapsed / steps)
         spent += elapsed

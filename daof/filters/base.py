@@ -7,6 +7,8 @@ x̂_0 = prior mean (``envs.system`` time convention); the truth ("state") is nev
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from tensordict import TensorDictBase
 
@@ -34,11 +36,21 @@ class Filter:
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    def run_streaming(self, data: TensorDictBase) -> torch.Tensor:
+        """``run`` one estimate per step, as deployed; what the cost per estimate times.
+
+        Same as ``run`` for recursive filters; filters that can vectorise over time override it.
+        """
+        return self.run(data)
+
     def validate(self, data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Check shapes, dtypes and finiteness of the inputs once; raise ValueError otherwise.
 
-        Measurements are not required to be finite (a later scenario drops measurements as NaN).
+        A NaN measurement entry marks a missing channel (sensor dropout, docs/missing_data.md) and
+        passes; an infinite measurement and any non-finite control are errors.
         """
+        if not isinstance(data, (TensorDictBase, Mapping)):
+            raise ValueError(f"{self.name}: data must be a TensorDict, got {type(data).__name__}")
         s = self.system
         dims = {"measurement": s.measurement_dim, "prev_control": s.control_dim, "control": s.control_dim}
         out = []
@@ -56,8 +68,18 @@ class Filter:
                     f"{self.name}: {key!r} has [runs, steps] = {tuple(value.shape[:2])}, "
                     f"measurement has {tuple(out[0].shape[:2])}"
                 )
-            if key != "measurement" and not torch.isfinite(value).all():
-                raise ValueError(f"{self.name}: {key!r} contains non-finite values")
+            # one reduction per key in the common all-finite case; locate the culprit only on failure
+            if not torch.isfinite(value).all():
+                bad = torch.isinf(value) if key == "measurement" else ~torch.isfinite(value)
+                if bad.any():
+                    where = tuple(bad.nonzero()[0].tolist())
+                    what = (
+                        "NaN or inf" if key != "measurement" else "inf (NaN marks a missing channel, inf is an error)"
+                    )
+                    raise ValueError(
+                        f"{self.name}: {key!r} contains {what}, first at [run, step, channel] = {list(where)} "
+                        f"(value {value[where].item()})"
+                    )
             out.append(value)
         if out[0].shape[0] < 1 or out[0].shape[1] < 1:
             raise ValueError(f"{self.name}: data needs at least one run and one step, got {tuple(out[0].shape)}")

@@ -5,6 +5,10 @@ covariance and starts from x̂_0 = prior mean, P_0 = prior covariance; for t = 1
 u_{t-1} and updates with y_t = g(x_t, u_t) (``envs.system`` time convention). filterpy works in
 float64; ``dtype`` only sets the dtype of the returned estimates.
 
+A NaN measurement channel is missing (sensor dropout): that step updates with the present
+channels only (the rows S of H or g, R[S, S]), or only predicts if none is present
+(docs/missing_data.md). Steps with every channel present run the unchanged filterpy step.
+
 Two numerical rules from specs/benchmark.md: a covariance that is no longer positive definite is
 repaired (symmetrise, add jitter until Cholesky succeeds) and counted in ``stats["repairs"]``; a run
 whose estimate becomes non-finite (or whose algebra fails) is kept, its remaining estimates are NaN,
@@ -194,22 +198,37 @@ class _KalmanBase(Filter):
         raise NotImplementedError
 
     def _step(self, kf, y, u_prev, u) -> None:
+        """Predict with u_{t-1}, update with every channel of y_t."""
         raise NotImplementedError
+
+    def _step_missing(self, kf, y, u_prev, u, present: np.ndarray) -> None:
+        """Predict with u_{t-1}, update with the channels ``present`` of y_t only (none: no update)."""
+        raise NotImplementedError
+
+    def _R_present(self, present: np.ndarray) -> np.ndarray:
+        """R[S, S] of the present channels S (the marginal covariance of their noise)."""
+        return self.R[np.ix_(present, present)]
 
     def _run(self, y, u_prev, u):
         device = y.device
         y, u_prev, u = (v.detach().double().cpu().numpy() for v in (y, u_prev, u))
         runs, steps = y.shape[:2]
+        # missing channels (NaN), found once: the per-step test is a list lookup
+        present = ~np.isnan(y)
+        gappy = (~present).any(-1).tolist()
         out = np.full((runs, steps, self.system.state_dim), np.nan)
         self.repair.count = 0
         diverged = 0
         for r in range(runs):
             kf = self._make()
-            yr, upr, ur = y[r], u_prev[r], u[r]
+            yr, upr, ur, gr = y[r], u_prev[r], u[r], gappy[r]
             try:
                 for t in range(steps):
                     kf.P = self.repair(kf.P)
-                    self._step(kf, yr[t], upr[t], ur[t])
+                    if gr[t]:
+                        self._step_missing(kf, yr[t], upr[t], ur[t], present[r, t])
+                    else:
+                        self._step(kf, yr[t], upr[t], ur[t])
                     x = kf.x.reshape(-1)
                     if not np.isfinite(x).all():
                         raise FloatingPointError("non-finite estimate")
@@ -240,6 +259,13 @@ class KalmanFilter(_KalmanBase):
     def _step(self, kf, y, u_prev, u):
         kf.predict(u=u_prev[:, None])  # column u: filterpy's x is a column, B u must be one too
         kf.update(y)
+
+    def _step_missing(self, kf, y, u_prev, u, present):
+        kf.predict(u=u_prev[:, None])
+        if present.any():  # filterpy only reshapes z when H is not given: pass a column
+            kf.update(y[present][:, None], R=self._R_present(present), H=self.C[present])
+        else:
+            kf.update(None)  # filterpy's "no measurement": the posterior is the prediction
 
 
 class _FilterpyEKF(ExtendedKalmanFilter):
@@ -275,6 +301,22 @@ class EKF(_KalmanBase):
         kf.F = self.model.F(kf.x[:, 0], u_prev)
         kf.predict(u=u_prev)
         kf.update(y[:, None], self._H, self._g, args=(u,), hx_args=(u,))  # filterpy wants a column z
+
+    def _step_missing(self, kf, y, u_prev, u, present):
+        kf.F = self.model.F(kf.x[:, 0], u_prev)
+        kf.predict(u=u_prev)
+        if not present.any():
+            kf.update(None, self._H, self._g)
+            return
+        m = self.model
+        kf.update(
+            y[present][:, None],
+            lambda x, u: m.H(x[:, 0], u)[present],
+            lambda x, u: m.g(x[:, 0], u)[present][:, None],
+            R=self._R_present(present),
+            args=(u,),
+            hx_args=(u,),
+        )
 
 
 class _FilterpyUKF(UnscentedKalmanFilter):
@@ -316,3 +358,11 @@ class UKF(_KalmanBase):
     def _step(self, kf, y, u_prev, u):
         kf.predict(u=u_prev)
         kf.update(y, u=u)
+
+    def _step_missing(self, kf, y, u_prev, u, present):
+        kf.predict(u=u_prev)
+        if not present.any():
+            kf.update(None)
+            return
+        m = self.model
+        kf.update(y[present], R=self._R_present(present), hx=lambda x, u: m.g(x, u)[..., present], u=u)

@@ -28,7 +28,7 @@ from envs.history import HISTORY_KEY
 from envs.registry import make_system
 from envs.system import StochasticSystem
 
-__all__ = ["FilterConfig", "LearnedFilter", "load_filter"]
+__all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
 #: window key an SLF reads (measurements and controls only, no fed-back estimates)
@@ -47,7 +47,7 @@ class FilterConfig:
     num_cells: int = 256
     depth: int = 3
     #: DAOF-v1: the update π(h) is bounded to ± correction_sigmas · sqrt(diag Q)
-    correction_sigmas: float = 10.0
+    correction_sigmas: float = 4.0
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -82,10 +82,6 @@ class PolicyNet(nn.Module):
         loc, log_std = self.mlp(self.normalize(window)).chunk(2, -1)
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
-    def loc(self, window: torch.Tensor) -> torch.Tensor:
-        """The pre-squash mean only (the deterministic filter needs nothing else)."""
-        return self.mlp(self.normalize(window)).chunk(2, -1)[0]
-
 
 def sliding_windows(frames: torch.Tensor, window: int) -> torch.Tensor:
     """[runs, steps, F] frames -> [runs, steps, N·F] windows, oldest first, padded like CatFrames.
@@ -95,6 +91,21 @@ def sliding_windows(frames: torch.Tensor, window: int) -> torch.Tensor:
     pad = frames[:, :1].expand(-1, window - 1, -1)
     padded = torch.cat([pad, frames], 1)  # [runs, steps + N − 1, F]
     return padded.unfold(1, window, 1).transpose(-1, -2).flatten(-2)
+
+
+def hold_last_value(y: torch.Tensor, fill: torch.Tensor) -> torch.Tensor:
+    """[runs, steps, m] with NaN gaps -> each NaN replaced by its channel's last present value.
+
+    Leading gaps (nothing seen yet) take ``fill`` [m]. Learned filters are trained on complete data;
+    holding the last value is their treatment of sensor dropouts (docs/missing_data.md).
+    """
+    missing = torch.isnan(y)
+    if not missing.any():
+        return y
+    steps = torch.arange(y.shape[1], device=y.device).view(1, -1, 1).expand_as(y)
+    last = torch.where(missing, -1, steps).cummax(1).values  # index of the last present value, −1 if none
+    held = torch.gather(y, 1, last.clamp_min(0))
+    return torch.where(last < 0, fill.to(y), held)
 
 
 class LearnedFilter(nn.Module, Filter):
@@ -155,20 +166,13 @@ class LearnedFilter(nn.Module, Filter):
         self.policy.input_scale.copy_(scale.repeat(self.config.window))
 
     # ----------------------------------------------------------------- networks
-    def squash(self, u: torch.Tensor) -> torch.Tensor:
-        """a = (hi−lo)/2 · tanh(u) + (hi+lo)/2."""
-        return (self.high - self.low) / 2 * torch.tanh(u) + (self.high + self.low) / 2
-
     def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
         """DAOF-v1's model predictor f(x̂_{t−1}, u_{t−1})."""
         return self.system.f(prev_estimate, prev_control)
 
     def estimate(self, window, prev_estimate=None, prev_control=None) -> torch.Tensor:
         """Deterministic estimate x̂_t (the squashed loc, plus the prediction for DAOF-v1)."""
-        out = self.squash(self.policy.loc(window))
-        if self.config.kind == "DAOF-v1":
-            out = self._add_prediction(out, prev_estimate, prev_control)
-        return out
+        return self._fast_estimate(self._inference_layers(), window, prev_estimate, prev_control)
 
     forward = estimate
 
@@ -216,10 +220,42 @@ class LearnedFilter(nn.Module, Filter):
 
     # ----------------------------------------------------------------- offline filtering
     def open_loop_frames(self, y, u, u_prev) -> torch.Tensor:
-        """Per-step frames without the fed-back estimate: [y_t, (u_t, u_{t−1})]."""
+        """Per-step frames without the fed-back estimate: [y_t, (u_t, u_{t−1})].
+
+        A missing measurement (NaN) holds the channel's last value; before the first value of a
+        channel it is the channel's training mean (see ``hold_last_value``).
+        """
+        start = self.system.state_dim if self.closed_loop else 0  # where y sits in a frame
+        y_mean = self.policy.input_loc[start : start + self.system.measurement_dim]
+        y = hold_last_value(y, y_mean)
         return torch.cat([y, u, u_prev] if self.uses_controls else [y], -1)
 
-    @torch.no_grad()
+    def _inference_layers(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The policy's (weight, bias) per layer, for the deterministic filter only.
+
+        The input normalisation is folded into the first layer and only the loc rows of the last
+        are kept, so one filter step costs four ``linear`` calls and three GELUs. Rebuilt on every
+        ``run`` (cheap), so it always matches the current weights.
+        """
+        linears = [m for m in self.policy.mlp if isinstance(m, nn.Linear)]
+        first, last, n = linears[0], linears[-1], self.system.state_dim
+        w0 = first.weight / self.policy.input_scale
+        layers = [(w0, first.bias - w0 @ self.policy.input_loc)]
+        layers += [(m.weight, m.bias) for m in linears[1:-1]]
+        return layers + [(last.weight[:n], last.bias[:n])]
+
+    def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None) -> torch.Tensor:
+        """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
+        h = window
+        for weight, bias in layers[:-1]:
+            h = nn.functional.gelu(nn.functional.linear(h, weight, bias))
+        u = nn.functional.linear(h, *layers[-1])  # the pre-squash loc; a = (hi−lo)/2 · tanh(u) + (hi+lo)/2
+        out = torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(u))
+        if self.config.kind == "DAOF-v1":
+            out = self._add_prediction(out, prev_estimate, prev_control)
+        return out
+
+    @torch.inference_mode()
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Filter [runs, steps] data -> [runs, steps, n] (``Filter.run`` validates the input).
 
@@ -227,22 +263,33 @@ class LearnedFilter(nn.Module, Filter):
         copies of the first frame after the reset), so ``run`` and an env rollout give the same
         estimates; the open-loop SLF filters every step at once.
         """
-        s, N = self.system, self.config.window
         if not self.closed_loop:
-            return self.estimate(sliding_windows(self.open_loop_frames(y, u, u_prev), N))
+            return self.estimate(sliding_windows(self.open_loop_frames(y, u, u_prev), self.config.window))
+        return self._stream(y, u_prev, u)
+
+    def _stream(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Step-by-step filtering (closed loop; for the SLF the streaming form of its windows)."""
+        s, N = self.system, self.config.window
         runs, steps = y.shape[:2]
-        prev = s.prior.mean.to(y.device).expand(runs, -1).clone()
+        layers = self._inference_layers()
         measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]
+        prev = s.prior.mean.to(y.device).expand(runs, -1).clone()
         width = self.frame_dim
         out = torch.empty(runs, steps, s.state_dim, device=y.device)
         window = None
         for t in range(steps):
-            frame = torch.cat([prev, measured[:, t]], -1)
+            frame = torch.cat([prev, measured[:, t]], -1) if self.closed_loop else measured[:, t]
             # slide the window by one frame; right after the reset it is N copies of frame 1
             window = frame.repeat(1, N) if window is None else torch.cat([window[:, width:], frame], -1)
-            prev = self.estimate(window, prev, u_prev[:, t])
+            prev = self._fast_estimate(layers, window, prev, u_prev[:, t])
             out[:, t] = prev
         return out
+
+    def run_streaming(self, data) -> torch.Tensor:
+        """``run`` one step at a time, as a deployed filter would (the SLF's cost is timed this way)."""
+        y, u_prev, u = self.validate(data)
+        with torch.inference_mode():
+            return self._stream(y, u_prev, u)
 
     # ----------------------------------------------------------------- checkpoint
     def save(self, path: str | Path, extra: dict | None = None) -> None:

@@ -18,6 +18,7 @@ from torchrl._utils import timeit
 from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
+from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
 from daof.train.checkpoint import atomic_save, capture_rng, load_checkpoint, restore_rng
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
@@ -49,7 +50,7 @@ class FilterTrainer:
                 include_controls=bool(cfg.include_controls),
                 num_cells=int(net.num_cells),
                 depth=int(net.depth),
-                correction_sigmas=float(net.get("correction_sigmas", 10.0)),
+                correction_sigmas=float(net.get("correction_sigmas", 4.0)),
             ),
             self.system,
         )
@@ -145,6 +146,13 @@ class FilterTrainer:
         record["score"] = float((rmse / self.system.error_scale).mean()) if finite else float("inf")
         return record
 
+    @torch.no_grad()
+    def reference_rmse(self) -> dict[str, list[float]]:
+        """A UKF's RMSE per state on the same validation set (systems with a model), for comparison."""
+        if not self.system.has_model or not self.cfg.validation.get("ukf_reference", True):
+            return {}
+        return {"UKF": rmse_per_state(UKF(self.system).run(self.val_data), self.val_data["state"]).tolist()}
+
     def start(self, total: int) -> tqdm:
         """Open the logger and the progress bar; start the wall clock (continuing a resumed one)."""
         lc = self.cfg.logger
@@ -189,7 +197,8 @@ class FilterTrainer:
         write_curve_csv(self.history, self.out / "learning_curve.csv")
         cfg = self.cfg
         title = f"{self.filter.config.kind} on {cfg.system} ({cfg.scenario}), N={cfg.window}"
-        plot_learning_curve(self.history, self.system.state_names, self.out / "learning_curve.png", title)
+        references = self.reference_rmse()
+        plot_learning_curve(self.history, self.system.state_names, self.out / "learning_curve.png", title, references)
         summary = {
             "kind": self.filter.config.kind,
             "system": cfg.system,
@@ -201,6 +210,7 @@ class FilterTrainer:
             "threads": torch.get_num_threads(),
             "best": self.best,
             "final": self.history[-1] if self.history else None,
+            "validation_references": references,
             "timing_s": {k: v for k, v in timeit.todict().items()},
         }
         (self.out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))

@@ -16,6 +16,8 @@ interrupted batch are not collected again).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from omegaconf import DictConfig
 from torchrl._utils import timeit
@@ -73,18 +75,22 @@ class DSACTTrainer(FilterTrainer):
         self.optim_alpha = torch.optim.Adam([self.loss.log_alpha], lr=float(o.lr_alpha))
 
     def target_entropy(self) -> float:
-        """DSAC-T's −dim(A), measured in the actor's normalised action space [−1, 1]^n.
+        """Entropy of exploration noise of ``loss.exploration_std`` error scales per state.
 
-        The TanhNormal's log-prob is in the action's own units (rad, rad/s), whose ranges are
-        far from [−1, 1]; by the change of variables a = half·ã + mid, −dim(A) in normalised units
-        is −n + Σ log(half-range) here. Without this, α would force exploration noise of the
-        order of the whole estimate range instead of a fixed fraction of it.
+        DSAC-T's −dim(A) presumes actions in [−1, 1]; an estimate's units and range are the
+        system's, and what matters for filtering is the noise relative to the achievable error.
+        The target is the entropy of a Gaussian with std k · ``system.error_scale`` per state
+        (the tanh barely bends at the small corrections a trained filter makes):
+        Σ_i log(√(2πe) · k · e_i). ``loss.target_entropy`` set to a number overrides it.
         """
-        entropy = self.cfg.loss.get("target_entropy", "auto")
-        if entropy != "auto":
-            return float(entropy)
-        half = (self.filter.high - self.filter.low) / 2
-        return float(-half.numel() + half.log().sum())
+        fixed = self.cfg.loss.get("target_entropy", "auto")
+        if fixed != "auto":
+            return float(fixed)
+        k = float(self.cfg.loss.get("exploration_std", 0.4))
+        if k <= 0:
+            raise ValueError(f"loss.exploration_std must be > 0, got {k}")
+        std = k * self.system.error_scale
+        return float((std * math.sqrt(2 * math.pi * math.e)).log().sum())
 
     def _make_data(self) -> None:
         cfg = self.cfg

@@ -18,6 +18,7 @@ import torch
 from omegaconf import DictConfig
 
 from daof.evaluate import run_study
+from daof.evaluate.experiment import checkpoint_fingerprint, learning_curves, select_profile, training_costs
 from daof.evaluate.jobs import TrainingJob, run_jobs
 from daof.evaluate.report import write_report
 from daof.filters import EKF, UKF, ParticleFilter
@@ -28,15 +29,19 @@ HERE = Path(__file__).resolve().parent
 
 
 def training_jobs(cfg: DictConfig, p: DictConfig, root: Path) -> dict[str, TrainingJob]:
+    """SLF and DAOF-v2 at N = 20 and DAOF-v1 at every N of the window study (recipe defaults + profile)."""
     common = [f"scenario={cfg.scenario}", f"seed={cfg.training_seed}"]
+    daof = [*common, *p.daof_overrides]
     jobs = {
-        "SLF": TrainingJob("SLF", HERE / "train_slf.py", root / "slf-N20", int(p.slf_frames), [*common, "window=20"]),
+        "SLF": TrainingJob(
+            "SLF", HERE / "train_slf.py", root / "slf-N20", int(p.slf_frames), [*common, "window=20", *p.slf_overrides]
+        ),
         "DAOF-v2": TrainingJob(
             "DAOF-v2",
             HERE / "train_daof.py",
             root / "daof-v2-N20",
             int(p.daof_frames),
-            [*common, "version=v2", "window=20"],
+            [*daof, "version=v2", "window=20"],
         ),
     }
     for n in sorted(p.windows, reverse=True):
@@ -46,16 +51,14 @@ def training_jobs(cfg: DictConfig, p: DictConfig, root: Path) -> dict[str, Train
             HERE / "train_daof.py",
             root / f"daof-v1-N{n}",
             int(p.daof_frames),
-            [*common, "version=v1", f"window={n}"],
+            [*daof, "version=v1", f"window={n}"],
         )
     return jobs
 
 
 @hydra.main(config_path=".", config_name="experiment", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    if cfg.profile not in cfg.profiles:
-        raise SystemExit(f"unknown profile {cfg.profile!r}; valid: {list(cfg.profiles)}")
-    p = cfg.profiles[cfg.profile]
+    p = select_profile(cfg)
     root = Path(cfg.output_root)
     start = time.perf_counter()
     print(f"Experiment I ({cfg.profile} profile, scenario {cfg.scenario}) -> {root}")
@@ -74,8 +77,17 @@ def main(cfg: DictConfig) -> None:
     }
     for name, job in jobs.items():
         filters[name] = load_filter(job.output_dir / "best.pt", system, expect={"system": "veh2dof"})
+    # learned filters are cached under a digest of their checkpoint: a retrained filter is never stale
+    versions = {name: checkpoint_fingerprint([job.output_dir / "best.pt"]) for name, job in jobs.items()}
     study = run_study(
-        system, filters, int(p.runs), int(p.steps), int(cfg.seed), int(cfg.timing_threads), cache_dir=root / "study"
+        system,
+        filters,
+        int(p.runs),
+        int(p.steps),
+        int(cfg.seed),
+        int(cfg.timing_threads),
+        cache_dir=root / "study",
+        versions=versions,
     )
     # Is the oracle converged? Doubling its particles must change its RMSE by < 1 %.
     doubled = run_study(
@@ -92,14 +104,13 @@ def main(cfg: DictConfig) -> None:
     change = ((twice - oracle).abs() / oracle * 100).tolist()
 
     print("3/3 report")
-    curves = {name: filters[name].extra.get("history", []) for name in ("SLF", "DAOF-v1", "DAOF-v2")}
+    curves = learning_curves(filters, ("SLF", "DAOF-v1", "DAOF-v2"))
     window_rows = [
         {"window": n, "rmse": study.results[name].rmse, "cost_ms": study.results[name].cost_ms}
         for n in sorted(p.windows)
         for name in [("DAOF-v1" if n == 20 else f"DAOF-v1 (N={n})")]
     ]
-    training = {name: job.summary() for name, job in jobs.items()}
-    training = {k: {f: v.get(f) for f in ("frames", "updates", "wall_s", "threads")} for k, v in training.items()}
+    training = training_costs(jobs)
     notes = [
         f"PF-oracle uses {p.oracle_particles} particles; with {2 * int(p.oracle_particles)} its RMSE changes by "
         + ", ".join(f"{c:.2f} %" for c in change)

@@ -1,0 +1,229 @@
+"""``RecordedSystem``: replay a recorded bank of episodes instead of simulating them afresh.
+
+A filter's estimates never feed back into the simulated trajectory, so the episodes an env serves
+can be simulated once and replayed (shared/specs/veh14dof.md §0). That pays off when simulating
+is expensive and batches badly: veh14dof costs ~70 ms per env step at batch 32 but simulates
+~15× more steps per second at batch 1024. The wrapper is a ``StochasticSystem`` that
+``FilteringEnv`` runs unchanged:
+
+* ``reset_episode`` draws episodes of the bank (uniformly, with replacement, from the env's own
+  generator, so a resumed run draws the same ones) and ``advance`` returns their recorded steps;
+* ``simulate(runs, steps, seed)`` returns exactly the base system's ``simulate`` and, given a
+  ``cache_dir``, memoises it on disk keyed by system, parameters, runs, steps and seed (validation
+  and normaliser sets are the same for every training run; the bank itself is one such call);
+* everything else (names, prior, bounds, ``f``/``g`` where the base offers them, ``report_scale``)
+  is the base system's.
+
+Build one with ``make_system(name, replay={"runs": 1024, "steps": 500, "seed": 1, "cache_dir": ...})``
+or ``RecordedSystem(system, ...)``. The bank records ``steps + 1`` measured steps per episode, so
+an env episode of up to ``steps`` estimates also gets the observation after its last estimate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from envs.system import StochasticSystem
+
+__all__ = ["RecordedSystem", "cache_key", "cached_simulate"]
+
+#: bump when the cached file format or the meaning of its key changes
+FORMAT = 1
+
+_COPIED = (
+    "name",
+    "scenario",
+    "scenarios",
+    "dt",
+    "state_names",
+    "state_units",
+    "measurement_names",
+    "measurement_units",
+    "control_names",
+    "prior",
+    "process_noise",
+    "measurement_noise",
+    "state_low",
+    "state_high",
+    "error_scale",
+    "has_model",
+)
+
+
+def _params(system: StochasticSystem) -> dict:
+    """The system's parameter dataclass as plain data (``{}`` if it has none)."""
+    for value in vars(system).values():
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return dataclasses.asdict(value)
+    return {}
+
+
+def cache_key(system: StochasticSystem, runs: int, steps: int, seed: int, device="cpu") -> dict:
+    """What identifies one ``simulate`` call: system, scenario, parameters, runs, steps, seed."""
+    return {
+        "format": FORMAT,
+        "system": system.name,
+        "scenario": system.scenario,
+        "params": json.loads(json.dumps(_params(system), default=str)),
+        "runs": int(runs),
+        "steps": int(steps),
+        "seed": int(seed),
+        "device": str(torch.device(device)),
+    }
+
+
+def _cache_path(cache_dir: Path, key: dict) -> Path:
+    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    return cache_dir / f"{key['system']}-{key['scenario']}-r{key['runs']}-t{key['steps']}-s{key['seed']}-{digest}.pt"
+
+
+def cached_simulate(
+    system: StochasticSystem, runs: int, steps: int, seed: int, cache_dir: str | Path | None, device="cpu"
+) -> TensorDict:
+    """``system.simulate(runs, steps, seed)``, memoised in ``cache_dir`` (``None``: not cached).
+
+    Concurrent callers (parallel training jobs) take a file lock, so one simulates and the others
+    read its file; a file is written atomically and checked against its key when read.
+    """
+    if cache_dir is None:
+        return system.simulate(runs, steps, seed, device=device)
+    cache = Path(cache_dir)
+    cache.mkdir(parents=True, exist_ok=True)
+    key = cache_key(system, runs, steps, seed, device)
+    path = _cache_path(cache, key)
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if path.is_file():
+                blob = torch.load(path, weights_only=True)
+                if blob.get("key") == key:
+                    return TensorDict(blob["data"], batch_size=[runs, steps]).to(device)
+            data = system.simulate(runs, steps, seed, device=device)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            torch.save({"key": key, "data": {k: v.cpu() for k, v in data.items()}}, tmp)
+            os.replace(tmp, path)
+            return data
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+class RecordedSystem(StochasticSystem):
+    """``base`` with env episodes replayed from a bank of ``runs`` recorded episodes.
+
+    Args:
+        base: the system that records (and, in ``simulate``, generates) the data.
+        runs: episodes in the bank.
+        steps: the longest env episode the bank serves (it records ``steps + 1`` steps).
+        seed: the bank's simulation seed (keep it disjoint from validation and evaluation seeds).
+        cache_dir: directory of the on-disk memo of ``simulate`` (``None``: memory only).
+    """
+
+    def __init__(self, base: StochasticSystem, runs: int = 1024, steps: int = 500, seed: int = 0, cache_dir=None):
+        if isinstance(base, RecordedSystem):
+            raise ValueError("base is already a RecordedSystem")
+        if int(runs) < 1 or int(steps) < 1:
+            raise ValueError(f"a bank needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
+        self.base = base
+        for attr in _COPIED:
+            setattr(self, attr, getattr(base, attr))
+        self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), int(seed)
+        self.cache_dir = Path(cache_dir) if cache_dir else None
+        self._bank: TensorDict | None = None
+
+    @classmethod
+    def from_mapping(cls, base: StochasticSystem, replay) -> RecordedSystem:
+        """From a config mapping (``make_system(..., replay={...})``); unknown keys are a ``ValueError``."""
+        fields = ("runs", "steps", "seed", "cache_dir")
+        kwargs = {str(k): v for k, v in replay.items()}
+        unknown = sorted(set(kwargs) - set(fields))
+        if unknown:
+            raise ValueError(f"unknown replay option(s) {unknown}; valid: {list(fields)}")
+        return cls(base, **kwargs)
+
+    def __getattr__(self, name):
+        # only called for attributes not found normally: the base system's (report_scale, p, ...)
+        if name == "base" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    # ----------------------------------------------------------------- the base system's model
+    def f(self, x, u):
+        return self.base.f(x, u)
+
+    def g(self, x, u):
+        return self.base.g(x, u)
+
+    def truth(self, x):
+        return self.base.truth(x)
+
+    # ----------------------------------------------------------------- data
+    def simulate(self, runs: int, steps: int, seed: int, device="cpu") -> TensorDict:
+        """The base system's ``simulate`` (memoised on disk when ``cache_dir`` is set)."""
+        return cached_simulate(self.base, runs, steps, seed, self.cache_dir, device)
+
+    @property
+    def bank(self) -> TensorDict:
+        """The recorded episodes [runs, steps + 1] (simulated, or read from the cache, on first use)."""
+        if self._bank is None:
+            self._bank = self.simulate(self.bank_runs, self.bank_steps + 1, self.bank_seed)
+        return self._bank
+
+    def reset_episode(self, runs: int, generator: torch.Generator, device="cpu") -> TensorDict:
+        """Draw ``runs`` bank episodes (with replacement) at t = 0."""
+        bank = self.bank
+        episode = torch.randint(self.bank_runs, (runs,), generator=generator, device=generator.device).cpu()
+        return TensorDict(
+            {
+                "episode": episode,
+                "t": torch.zeros(runs, dtype=torch.long),
+                "u": bank["prev_control"][episode, 0],
+            },
+            batch_size=[runs],
+        ).to(device)
+
+    def advance(self, sim: TensorDict, generator: torch.Generator) -> tuple[TensorDict, TensorDict]:
+        """Step t -> t + 1 of every run's bank episode: the recorded observation at t + 1."""
+        t = sim["t"] + 1
+        last = int(t.max())
+        if last > self.bank_steps + 1:
+            raise ValueError(
+                f"the bank serves episodes of up to {self.bank_steps} steps; step {last - 1} was asked for "
+                "(record a longer bank: steps >= the env's max_steps)"
+            )
+        episode, index = sim["episode"].cpu(), (t - 1).cpu()
+        bank = self.bank
+        device = sim.device if sim.device is not None else t.device
+        obs = TensorDict(
+            {k: bank[k][episode, index] for k in ("state", "measurement", "control", "prev_control")},
+            batch_size=sim.batch_size,
+        ).to(device)
+        new_sim = TensorDict({"episode": sim["episode"], "t": t, "u": obs["control"]}, batch_size=sim.batch_size)
+        return new_sim, obs
+
+    # ----------------------------------------------------------------- helpers
+    def to(self, device) -> RecordedSystem:
+        self.base.to(device)
+        for attr in ("state_low", "state_high", "error_scale"):
+            setattr(self, attr, getattr(self.base, attr))
+        return self
+
+    def describe(self) -> dict:
+        info = self.base.describe()
+        info["replay"] = {
+            "runs": self.bank_runs,
+            "steps": self.bank_steps,
+            "seed": self.bank_seed,
+            "cache_dir": str(self.cache_dir) if self.cache_dir else None,
+        }
+        return info
+
+    def __repr__(self) -> str:
+        return f"RecordedSystem({self.name}, runs={self.bank_runs}, steps={self.bank_steps}, seed={self.bank_seed})"
