@@ -87,3 +87,27 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
     assert second.returncode == 0, second.stderr[-3000:]
     assert second.stdout.count("finished earlier, reusing") == 4
     assert second.stdout.count("reused finished result") == 9
+
+
+def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
+    """A finished result is reused; a filter with another version (retrained weights) is evaluated again."""
+    from daof.evaluate import run_study
+    from daof.filters import EKF
+    from envs import make_system
+
+    system = make_system("linear")
+    logs = []
+    for version in ("w1", "w1", "w2"):
+        run_study(
+            system,
+            {"EKF": EKF(system)},
+            2,
+            20,
+            5,
+            measure_cost=False,
+            cache_dir=tmp_path,
+            log=logs.append,
+            versions={"EKF": version},
+        )
+    reused = ["reused finished result" in line for line in logs if line.startswith("[1/1] EKF:") and "RMSE" not in line]
+    assert reused == [False, True, False]

@@ -86,7 +86,7 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path):
     report = recipe.study_and_report(cfg, p, jobs, time.perf_counter())
     results = _check_report(report.parent, runs=int(p.runs))
     # the SI RMSE of the cached study result times the scale is what the report shows
-    study_file = next((tmp_path / "study").glob("*/SLF.pt"))
+    study_file = tmp_path / "study" / "SLF.pt"
     si = torch.tensor(torch.load(study_file, weights_only=False)["result"]["rmse"], dtype=torch.float64)
     shown = torch.tensor(results["filters"]["SLF"]["rmse"], dtype=torch.float64)
     torch.testing.assert_close(shown, si * torch.tensor(results["unit_scale"], dtype=torch.float64))

@@ -13,6 +13,11 @@ import torch  # noqa: E402
 __all__ = ["plot_one_run", "plot_one_run_state", "plot_per_run_boxes", "plot_learning_curves", "plot_window_study"]
 
 
+def _thousands(x, _pos=None) -> str:
+    """Tick label for sample counts: 250000 -> 250k."""
+    return f"{x / 1000:g}k" if abs(x) >= 1000 else f"{x:g}"
+
+
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -99,6 +104,7 @@ def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path,
             ax.text(ax.get_xlim()[0], values[j], f" {label}", fontsize=7, color="gray", va="bottom")
         ax.set_yscale("log")
         ax.set_xscale("symlog", linthresh=1e4)
+        ax.xaxis.set_major_formatter(_thousands)
         ax.set_xlabel("training samples (env steps)")
         ax.set_ylabel(f"validation RMSE {state}" + (f" [{units[j]}]" if units else ""))
         ax.grid(alpha=0.3)

@@ -10,6 +10,11 @@ import torch
 __all__ = ["rmse_per_state", "write_curve_csv", "plot_learning_curve"]
 
 
+def _thousands(x, _pos=None) -> str:
+    """Tick label for sample counts: 250000 -> 250k."""
+    return f"{x / 1000:g}k" if abs(x) >= 1000 else f"{x:g}"
+
+
 def rmse_per_state(estimates: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """Pooled RMSE per state over runs and steps: sqrt(mean((x̂ − x)²)) -> [state_dim]."""
     if estimates.shape != truth.shape:
@@ -47,6 +52,7 @@ def plot_learning_curve(
             ax.axhline(values[i], ls="--", lw=1, color="gray")
             ax.annotate(label, (frames[0], values[i]), fontsize=7, color="gray", va="bottom")
         ax.set_yscale("log")
+        ax.xaxis.set_major_formatter(_thousands)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(f"RMSE {name}")
         ax.grid(alpha=0.3)

@@ -2,7 +2,7 @@
 
 python recipes/veh2dof/train_daof.py version=v1 window=20            # Experiment I
 python recipes/veh2dof/train_daof.py resume=runs/.../checkpoint.pt     # continue an interrupted run
-python recipes/veh2dof/train_daof.py --config-dir recipes/linear --config-name daof   # another system
+python recipes/veh2dof/train_daof.py --config-path $PWD/recipes/veh14dof --config-name config   # another system
 """
 
 from __future__ import annotations
