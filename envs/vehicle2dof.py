@@ -88,6 +88,7 @@ class Vehicle2DOF(StochasticSystem):
         self.Fzr = p.m * p.g * p.lf / l
         self._Fz = torch.tensor([self.Fzf, self.Fzr], dtype=torch.float64)
         self._slip_map = torch.tensor([[1.0, 1.0], [p.lf / p.vx, -p.lr / p.vx]], dtype=torch.float64)
+        self._f_cache: dict = {}
 
     # ----------------------------------------------------------------- physics
     def _tyre(self, alpha, Fz, mu, B):
@@ -123,7 +124,33 @@ class Vehicle2DOF(StochasticSystem):
         return (Fyf_c + Fyr) / p.m
 
     def f(self, x, u):
-        return x + self.dt * self.derivative(x, u)
+        """Nominal Euler step x + Δτ·ẋ(x, u): ``derivative`` with the nominal μ, B, rearranged.
+
+        It runs inside every DAOF-v1 estimate, so it is written in 15 tensor ops instead of ~35:
+        slip = x M − δ e₁, F = −μ F_z sin(C atan(lerp(Bα, atan(Bα), E))) per axle,
+        F_c = F ⊙ cos(δ e₁) (only the front force turns with the wheel), x' = x K + F_c D.
+        """
+        M, e1, neg_e1, muFz, K, D = self._f_constants(x)
+        delta = u[..., :1]
+        Ba = torch.addcmul(x @ M, delta, neg_e1) * self.p.B
+        Fy = torch.sin(self.p.C * torch.atan(torch.lerp(Ba, torch.atan(Ba), self.p.E))) * muFz
+        return x @ K + (Fy * torch.cos(delta * e1)) @ D
+
+    def _f_constants(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The constant matrices of ``f`` in x's dtype and device (built once per dtype/device)."""
+        key = (x.dtype, x.device)
+        if key not in self._f_cache:
+            p, dt = self.p, self.dt
+            c = [
+                self._slip_map,
+                [1.0, 0.0],
+                [-1.0, 0.0],
+                [-p.mu * self.Fzf, -p.mu * self.Fzr],
+                [[1.0, 0.0], [-dt, 1.0]],
+                [[dt / (p.m * p.vx), dt * p.lf / p.Iz], [dt / (p.m * p.vx), -dt * p.lr / p.Iz]],
+            ]
+            self._f_cache[key] = tuple(torch.as_tensor(v, dtype=torch.float64).to(x) for v in c)
+        return self._f_cache[key]
 
     def g(self, x, u):
         return torch.stack([self.lateral_acceleration(x, u), x[..., 1]], -1)

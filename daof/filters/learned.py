@@ -197,7 +197,7 @@ class LearnedFilter(nn.Module, Filter):
         the vehicle model is stable, and the estimate then runs away for the rest of the episode.
         """
         estimate = correction + self.predict(prev_estimate, prev_control)
-        return torch.minimum(torch.maximum(estimate, self.state_low), self.state_high)
+        return torch.clamp(estimate, self.state_low, self.state_high)
 
     def exploration_policy(self) -> TensorDictSequential:
         """What a collector runs: sample from π and, for DAOF-v1, add the prediction."""
