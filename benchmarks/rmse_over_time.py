@@ -1,0 +1,48 @@
+"""RMSE of trained filters beside a reference, split into the start-up and the rest of each run.
+
+    .venv/bin/python benchmarks/rmse_over_time.py --system linear runs/linear/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python benchmarks/rmse_over_time.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
+
+Data: the training runs' validation set (20 runs × 500 steps, seed 9100). References: the Kalman
+filter on ``linear``; UKF and a 1000-particle PF on ``veh2dof``. Columns: all steps, t ≥ --settled,
+t < --startup.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+from daof.filters import UKF, KalmanFilter, ParticleFilter
+from daof.filters.learned import load_filter
+from envs import make_system
+
+
+def _rmse(err: torch.Tensor) -> str:
+    return "[" + ", ".join(f"{v:.5f}" for v in err.pow(2).mean((0, 1)).sqrt().tolist()) + "]"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoints", nargs="+")
+    parser.add_argument("--system", default="veh2dof", choices=["veh2dof", "linear"])
+    parser.add_argument("--settled", type=int, default=50)
+    parser.add_argument("--startup", type=int, default=20)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    system = make_system(args.system)
+    data = system.simulate(20, 500, seed=9100)
+    if args.system == "linear":
+        filters = {"Kalman filter": KalmanFilter(system)}
+    else:
+        filters = {"UKF": UKF(system), "PF (1000)": ParticleFilter(system, 1000, seed=0)}
+    filters.update({path: load_filter(path, system) for path in args.checkpoints})
+    print(f"| filter | all steps | t ≥ {args.settled} | t < {args.startup} |\n|---|---|---|---|")
+    for name, filt in filters.items():
+        err = filt.run(data) - data["state"]
+        print(f"| {name} | {_rmse(err)} | {_rmse(err[:, args.settled :])} | {_rmse(err[:, : args.startup])} |")
+
+
+if __name__ == "__main__":
+    main()
