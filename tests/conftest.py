@@ -5,6 +5,8 @@ import os
 import pytest
 import torch
 
+import envs
+
 os.environ.setdefault("WANDB_MODE", "disabled")
 
 
@@ -15,3 +17,15 @@ def _single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(saved)
+
+
+@pytest.fixture(scope="session")
+def veh():
+    """The veh2dof system (nominal)."""
+    return envs.make_system("veh2dof")
+
+
+@pytest.fixture(scope="session")
+def lin():
+    """The linear-Gaussian oscillator."""
+    return envs.make_system("linear")

@@ -11,7 +11,6 @@ import pytest
 import torch
 from filterpy.monte_carlo import systematic_resample as filterpy_systematic_resample
 
-import envs
 from daof.filters import EKF, UKF, CovarianceRepair, KalmanFilter, ParticleFilter, systematic_resample
 from daof.filters.kalman import make_model
 from envs.linear import stationary_kalman_covariance
@@ -19,16 +18,6 @@ from envs.linear import stationary_kalman_covariance
 # specs/veh2dof.md reference RMSE [β rad, r rad/s] (prototype figures, order of magnitude only)
 UKF_REFERENCE = torch.tensor([0.0104, 0.0263])
 PF_REFERENCE = torch.tensor([0.0093, 0.0232])
-
-
-@pytest.fixture(scope="module")
-def veh():
-    return envs.make_system("veh2dof")
-
-
-@pytest.fixture(scope="module")
-def lin():
-    return envs.make_system("linear")
 
 
 @pytest.fixture(scope="module")

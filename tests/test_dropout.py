@@ -13,20 +13,9 @@ import math
 import pytest
 import torch
 
-import envs
 from daof.evaluate import Dropout, apply_dropout, dropout_mask, run_study
 from daof.evaluate.report import write_report
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
-
-
-@pytest.fixture(scope="module")
-def veh():
-    return envs.make_system("veh2dof")
-
-
-@pytest.fixture(scope="module")
-def lin():
-    return envs.make_system("linear")
 
 
 def test_mask_is_reproducible_from_its_seed_with_the_asked_for_rate():

@@ -50,16 +50,6 @@ def two_channel_linear(correlated: bool):
 
 
 @pytest.fixture(scope="module")
-def veh():
-    return envs.make_system("veh2dof")
-
-
-@pytest.fixture(scope="module")
-def lin():
-    return envs.make_system("linear")
-
-
-@pytest.fixture(scope="module")
 def veh_data(veh):
     return veh.simulate(8, 500, seed=101)
 
