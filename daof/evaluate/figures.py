@@ -33,21 +33,25 @@ def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
     t = torch.arange(1, truth.shape[0] + 1) * s.dt
     fig, axes = plt.subplots(2, s.state_dim, figsize=(6 * s.state_dim, 6.5), sharex=True, squeeze=False)
     for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
-        top, bottom = axes[0, j], axes[1, j]
-        top.plot(t, truth[:, j], color="black", lw=1.6, label="true")
-        for name in names:
-            est = study.estimates[name][run, :, j]
-            top.plot(t, est, lw=0.9, label=name)
-            bottom.plot(t, est - truth[:, j], lw=0.8, label=name)
-        top.set_ylabel(f"{state} [{unit}]")
-        bottom.set_ylabel(f"error {state} [{unit}]")
-        bottom.set_xlabel("time [s]")
-        bottom.axhline(0, color="black", lw=0.6)
-        for ax in (top, bottom):
-            ax.grid(alpha=0.3)
+        estimates = {name: study.estimates[name][run, :, j] for name in names}
+        _state_and_error_panels(axes[0, j], axes[1, j], t, truth[:, j], estimates, f"{state} [{unit}]")
     axes[0, 0].legend(fontsize=7, ncol=2)
     fig.suptitle(f"{s.name} ({s.scenario}), run {run}: estimates and errors")
     return _save(fig, path)
+
+
+def _state_and_error_panels(top, bottom, t, truth, estimates: dict, label: str) -> None:
+    """One state: true and estimated trajectories (top), estimation errors over time (bottom)."""
+    top.plot(t, truth, color="black", lw=1.6, label="true")
+    for name, est in estimates.items():
+        top.plot(t, est, lw=0.9, label=name)
+        bottom.plot(t, est - truth, lw=0.8, label=name)
+    top.set_ylabel(label)
+    bottom.set_ylabel(f"error {label}")
+    bottom.set_xlabel("time [s]")
+    bottom.axhline(0, color="black", lw=0.6)
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
 
 
 def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, units=None) -> Path:
@@ -58,17 +62,8 @@ def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, unit
     truth = study.data["state"][run, :, j]
     t = torch.arange(1, truth.shape[0] + 1) * s.dt
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    top.plot(t, truth, color="black", lw=1.6, label="true")
-    for name in names:
-        est = study.estimates[name][run, :, j]
-        top.plot(t, est, lw=0.9, label=name)
-        bottom.plot(t, est - truth, lw=0.8, label=name)
-    top.set_ylabel(f"{state} [{unit}]")
-    bottom.set_ylabel(f"error {state} [{unit}]")
-    bottom.set_xlabel("time [s]")
-    bottom.axhline(0, color="black", lw=0.6)
-    for ax in (top, bottom):
-        ax.grid(alpha=0.3)
+    estimates = {name: study.estimates[name][run, :, j] for name in names}
+    _state_and_error_panels(top, bottom, t, truth, estimates, f"{state} [{unit}]")
     top.legend(fontsize=7, ncol=3)
     fig.suptitle(f"{s.name} ({s.scenario}), run {run}: {state}, estimates and errors")
     return _save(fig, path)
