@@ -6,7 +6,8 @@ reward is r_t = −‖x_t − x̂_t‖²_W. After a reset the previous estimate 
 the first measurement is y_1 (see ``envs.system`` for the time convention).
 
 Keys. Observations: ``measurement``, ``control`` (u_t), ``prev_control`` (u_{t−1}, what the
-DAOF-v1 predictor needs), ``prev_estimate`` (x̂_{t−1}). The true state x_t travels under
+DAOF-v1 predictor needs), ``prev_estimate`` (x̂_{t−1}) and ``step`` (t, the number of measurements
+since the reset: 1 right after it; DAOF-v1 sizes its update bound by it). The true state x_t travels under
 ``true_state`` for logging and supervised training only: no filter module in this project reads
 it, and a filter that did would be cheating.
 
@@ -34,7 +35,8 @@ class FilteringEnv(EnvBase):
         system: the system to filter.
         batch_size: number of parallel episodes B (an int or ``[B]``).
         max_steps: episode length T; an episode ends ``truncated`` after T estimates.
-        reward_weights: per-state weights W (``[state_dim]``); default 1/(n·error_scale²).
+        reward_weights: per-state weights W (``[state_dim]``), default 1/(n·error_scale²), or one
+            row per step t = 1..S (``[S, state_dim]``; steps after S use the last row).
         seed: seed of the env's ``torch.Generator`` (``set_seed`` can change it later).
         device: where the simulation runs.
     """
@@ -62,8 +64,12 @@ class FilteringEnv(EnvBase):
         if reward_weights is None:
             reward_weights = 1.0 / (n * system.error_scale**2)
         self.reward_weights = torch.as_tensor(reward_weights, dtype=torch.float32, device=self.device)
-        if self.reward_weights.shape != (n,) or (self.reward_weights < 0).any():
-            raise ValueError(f"reward_weights must be {n} non-negative numbers, got {reward_weights}")
+        w = self.reward_weights
+        if w.ndim not in (1, 2) or w.shape[-1] != n or w.numel() == 0 or (w < 0).any() or not torch.isfinite(w).all():
+            raise ValueError(
+                f"reward_weights must be {n} non-negative numbers or a [steps, {n}] schedule, "
+                f"got shape {tuple(w.shape)}"
+            )
         self._make_specs()
         self.rng = torch.Generator(device=self.device)
         self._set_seed(seed if seed is not None else int(torch.seed() % 2**31))
@@ -80,6 +86,7 @@ class FilteringEnv(EnvBase):
             control=Unbounded(shape=(*B, c), device=dev),
             prev_control=Unbounded(shape=(*B, c), device=dev),
             prev_estimate=Unbounded(shape=(*B, n), device=dev),
+            step=Unbounded(shape=(*B, 1), dtype=torch.int64, device=dev),
             true_state=Unbounded(shape=(*B, n), device=dev),
             shape=B,
             device=dev,
@@ -106,6 +113,7 @@ class FilteringEnv(EnvBase):
             "control": self._obs["control"],
             "prev_control": self._obs["prev_control"],
             "prev_estimate": self._prev_estimate,
+            "step": self._sim["t"].unsqueeze(-1),
             "true_state": self._obs["state"],
         }
 
@@ -138,7 +146,10 @@ class FilteringEnv(EnvBase):
             bad = (~torch.isfinite(estimate)).any(-1).nonzero().flatten().tolist()
             raise ValueError(f"the estimate (action) is not finite in run(s) {bad[:10]}")
         error = self._obs["state"] - estimate
-        reward = -(error.pow(2) * self.reward_weights).sum(-1, keepdim=True)
+        weights = self.reward_weights
+        if weights.ndim == 2:  # W_t of the step being estimated
+            weights = weights[self._sim["t"].clamp(1, len(weights)) - 1]
+        reward = -(error.pow(2) * weights).sum(-1, keepdim=True)
         self._sim, self._obs = self.system.advance(self._sim, self.rng)
         self._prev_estimate = estimate.detach().clone()
         # sim["t"] counts measured steps; the episode ends after max_steps estimates.

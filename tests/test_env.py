@@ -133,6 +133,21 @@ def test_custom_reward_weights():
         make_env("veh2dof", batch_size=2, reward_weights=[1.0, -1.0])
 
 
+def test_reward_weight_schedule_uses_the_row_of_the_estimated_step_and_holds_the_last():
+    """A [S, n] schedule weighs the error of the estimate at step t (1..S) with row t; t > S uses row S."""
+    S, T, B = 3, 6, 2
+    schedule = torch.tensor([[1.0, 0.0], [2.0, 0.0], [0.0, 3.0]])
+    env = make_env("veh2dof", batch_size=B, window=1, seed=0, max_steps=T, reward_weights=schedule)
+    data = env.rollout(T, lambda td: td.set("action", torch.zeros(B, 2)), break_when_any_done=False)
+    assert data["step"][0, :, 0].tolist() == list(range(1, T + 1))
+    rows = schedule[torch.arange(T).clamp(max=S - 1)]  # [T, n]
+    expected = -(data["true_state"] ** 2 * rows).sum(-1, keepdim=True)
+    torch.testing.assert_close(data["next", "reward"], expected)
+    for bad in (torch.ones(3, 3), torch.ones(0, 2), torch.ones(2, 2, 2), torch.full((2, 2), float("nan"))):
+        with pytest.raises(ValueError, match="reward_weights"):
+            make_env("veh2dof", batch_size=2, reward_weights=bad)
+
+
 def test_episode_is_truncated_after_exactly_max_steps():
     T, B = 5, 2
     env = make_env("veh2dof", batch_size=B, window=2, seed=3, max_steps=T)

@@ -4,7 +4,16 @@ import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from daof.filters.learned import FilterConfig, LearnedFilter, hold_last_value, load_filter, sliding_windows
+from daof.filters.learned import (
+    SCHEDULE_STEPS,
+    FilterConfig,
+    LearnedFilter,
+    hold_last_value,
+    load_filter,
+    sliding_windows,
+    startup_feature,
+)
+from daof.train.schedules import ukf_schedule
 from envs import make_env
 
 
@@ -37,16 +46,64 @@ def test_exploration_policy_deterministic_mode_is_the_filter():
     torch.testing.assert_close(a, b)
 
 
-def test_v1_correction_is_bounded_and_added_to_prediction():
-    """DAOF-v1: x̂_t − f(x̂_{t−1}, u_{t−1}) stays within ± correction_sigmas·sqrt(diag Q)."""
+def test_v1_update_is_the_unit_action_times_the_bound_of_its_step():
+    """DAOF-v1: x̂_t − f(x̂_{t−1}, u_{t−1}) = b_t ⊙ a_t with the actor's a_t ∈ [−1, 1]ⁿ."""
     f = small("DAOF-v1")
-    env = make_env("veh2dof", batch_size=4, window=4, seed=3, max_steps=20)
+    f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
+    env = make_env("veh2dof", batch_size=4, window=4, seed=3, max_steps=60)
     with torch.no_grad():
-        td = env.rollout(20, f.exploration_policy(), break_when_any_done=False)
+        td = env.rollout(60, f.exploration_policy(), break_when_any_done=False)
+    assert (td["correction"].abs() <= 1).all()
+    steps = torch.arange(1, 61)
+    assert (td["step"][..., 0] == steps).all()
+    bound = f.correction_scale[steps.clamp(max=SCHEDULE_STEPS) - 1]  # [steps, n]
     pred = f.system.f(td["prev_estimate"], td["prev_control"])
-    torch.testing.assert_close(td["action"] - pred, td["correction"], atol=1e-6, rtol=0)
-    half = f.config.correction_sigmas * f.system.process_noise.covariance.diagonal().sqrt()
-    assert (td["correction"].abs() <= half + 1e-6).all()
+    torch.testing.assert_close(td["action"] - pred, bound * td["correction"], atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("system", ["linear", "veh2dof"])
+def test_v1_kalman_bound_follows_the_ukf_update_and_settles_above_the_process_floor(system):
+    """b_t = k · max(√Q, std of the UKF's update at t): wide at t = 1 (the prior's error), ≥ k√Q always."""
+    f = small("DAOF-v1", system=system)
+    k, floor = f.config.correction_sigmas, f.system.process_noise.covariance.diagonal().sqrt()
+    torch.testing.assert_close(f.correction_scale, (k * floor).expand_as(f.correction_scale))  # before fitting
+    schedule = ukf_schedule(f.system, seed=3, runs=4)
+    f.set_schedules(schedule)
+    torch.testing.assert_close(f.correction_scale, k * torch.maximum(schedule["update"], floor))
+    torch.testing.assert_close(f.policy.innovation_scale, schedule["innovation"])
+    assert (f.correction_scale[0] > 2 * k * floor).any()  # the start-up needs more than k√Q
+    assert (f.correction_scale >= k * floor - 1e-7).all()
+    process = LearnedFilter(FilterConfig(kind="DAOF-v1", system=system, window=4, correction_bound="process"))
+    process.set_schedules(schedule)
+    torch.testing.assert_close(process.correction_scale, (k * floor).expand_as(f.correction_scale))
+    short = small("DAOF-v1", system=system)  # a shorter schedule is held at its last row
+    short.set_schedules({key: value[:10] for key, value in schedule.items()})
+    torch.testing.assert_close(short.correction_scale[10:], f.correction_scale[9:10].expand(SCHEDULE_STEPS - 10, -1))
+
+
+def test_v1_innovation_input_is_the_scaled_innovation_of_the_newest_frame():
+    """ν_t = y_t − g(f(x̂_{t−1}, u_{t−1}), u_t) from the env's keys, divided by √S_t of its step, enters the MLP."""
+    f = small("DAOF-v1")
+    f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
+    env = make_env("veh2dof", batch_size=3, window=4, seed=4, max_steps=8)
+    with torch.no_grad():
+        td = env.rollout(8, f.exploration_policy(), break_when_any_done=False)
+        s = f.system
+        nu = td["measurement"] - s.g(s.f(td["prev_estimate"], td["prev_control"]), td["control"])
+        torch.testing.assert_close(f.innovation(td["history"]), nu)
+        features = f.policy.features(td["history"], td["step"])
+        width = f.policy.input_loc.numel()
+        scale = f.policy.innovation_scale[td["step"][..., 0] - 1]
+        torch.testing.assert_close(features[..., width : width + 2], nu / scale)
+    assert not small("DAOF-v2").innovation_input and f.policy.feature_dim == width + 2 + 1
+
+
+def test_startup_feature_is_one_at_the_first_step_and_zero_once_settled():
+    steps = torch.tensor([[1], [2], [SCHEDULE_STEPS + 1], [SCHEDULE_STEPS + 40]])
+    torch.testing.assert_close(startup_feature(steps), torch.tensor([[1.0], [1 - 1 / SCHEDULE_STEPS], [0.0], [0.0]]))
+    assert startup_feature(1) == 1.0 and startup_feature(SCHEDULE_STEPS + 1) == 0.0
+    for kind, reads in [("DAOF-v1", True), ("DAOF-v2", True), ("SLF", False)]:
+        assert ("step" in small(kind).policy_in_keys) == reads
 
 
 def test_v1_estimate_stays_in_the_plausible_state_range():

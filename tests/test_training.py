@@ -114,13 +114,50 @@ def test_slf_learns_and_resumes(tmp_path):
 
 
 def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
-    """auto: the entropy of Gaussian noise of k error scales per state, for v1 and v2 alike."""
+    """auto: the entropy of Gaussian noise of k error scales per state, in the actor's action units."""
     for version in ("v1", "v2"):
         trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / version, version=version))
-        std = 0.4 * trainer.system.error_scale
+        std = 0.4 * trainer.system.error_scale / trainer.filter.action_scale  # v1 acts in units of its bound
         expected = float(torch.log(std * math.sqrt(2 * math.pi * math.e)).sum())
         assert trainer.loss.target_entropy == pytest.approx(expected)
     cfg = tiny_cfg("config.yaml", tmp_path / "fixed", **{"loss.target_entropy": -3.0})
     assert DSACTTrainer(cfg).loss.target_entropy == pytest.approx(-3.0)
     with pytest.raises(ValueError, match="exploration_std must be > 0"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"loss.exploration_std": 0.0}))
+
+
+def test_startup_schedules_of_a_dsac_run(tmp_path):
+    """reward.weights=kalman: W_t rises from below W to W (non-decreasing) and the env uses it; v1's
+    bound is fitted from the same UKF; constant weights and the process bound switch both off."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "k", version="v1"))
+    system = trainer.system
+    w = 1.0 / (system.state_dim * system.error_scale**2)
+    schedule = trainer.reward_weights
+    assert schedule.shape == (trainer.filter.correction_scale.shape[0], system.state_dim)
+    assert (schedule[0] < 0.9 * w).all() and (schedule.diff(dim=0) >= 0).all()
+    torch.testing.assert_close(schedule[-1], w)
+    assert trainer.base_env.reward_weights is schedule
+    assert (trainer.filter.correction_scale[0] > trainer.filter.correction_scale[-1]).any()
+    assert (trainer.filter.policy.innovation_scale[0] > trainer.filter.policy.innovation_scale[-1]).all()
+    off = {"reward.weights": "constant", "network.correction_bound": "process"}
+    plain = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "c", version="v1", **off))
+    assert plain.reward_weights is None
+    k, floor = plain.filter.config.correction_sigmas, system.process_noise.covariance.diagonal().sqrt()
+    torch.testing.assert_close(plain.filter.correction_scale, (k * floor).expand_as(plain.filter.correction_scale))
+    with pytest.raises(ValueError, match="reward.weights"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"reward.weights": "sometimes"}))
+
+
+def test_learning_rates_follow_a_cosine_to_the_final_fraction(tmp_path):
+    """optim.lr_final: lr at frame 0, lr · final at the budget, the cosine's midpoint halfway; 1 keeps lr."""
+    cfg = tiny_cfg("config.yaml", tmp_path / "lr", **{"optim.lr_final": 0.1, "collector.total_frames": 1000})
+    trainer = DSACTTrainer(cfg)
+    lr = float(cfg.optim.lr_actor)
+    for frames, factor in ((0, 1.0), (500, 0.55), (1000, 0.1), (4000, 0.1)):
+        trainer.frames = frames
+        assert trainer.set_learning_rates() == pytest.approx(factor)
+        assert trainer.optim_actor.param_groups[0]["lr"] == pytest.approx(lr * factor)
+        assert trainer.optim_critic.param_groups[0]["lr"] == pytest.approx(float(cfg.optim.lr_critic) * factor)
+    constant = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "c", **{"optim.lr_final": 1.0}))
+    constant.frames = 700
+    assert constant.set_learning_rates() == pytest.approx(1.0)

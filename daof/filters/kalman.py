@@ -238,6 +238,32 @@ class _KalmanBase(Filter):
         self.stats = {"repairs": self.repair.count, "diverged": diverged}
         return torch.from_numpy(out).to(device=device, dtype=self.dtype)
 
+    def covariance_schedule(self, data) -> dict[str, torch.Tensor]:
+        """Per step t = 1..T, averaged over runs, the √diag of this filter's covariances (float64).
+
+        ``update``: P⁻_t − P⁺_t = K S Kᵀ, the covariance of the update x̂_t − x̂⁻_t; ``prediction``:
+        P⁻_t; ``estimate``: P⁺_t (each [steps, n]); ``innovation``: S_t, that of y_t − ŷ_t
+        ([steps, m]). All are wide in the start-up, when the prior is wide, and small once P has
+        settled. DAOF training sizes its update bound, inputs and rewards from them
+        (``daof.train.schedules``). Needs complete data.
+        """
+        y, u_prev, u = (v.detach().double().cpu().numpy() for v in self.validate(data))
+        if np.isnan(y).any():
+            raise ValueError(f"{self.name}.covariance_schedule needs data without missing measurements")
+        sums = {key: 0.0 for key in ("update", "prediction", "estimate", "innovation")}
+        for r in range(y.shape[0]):
+            kf = self._make()
+            rows = {key: [] for key in sums}
+            for t in range(y.shape[1]):
+                kf.P = self.repair(kf.P)
+                self._step(kf, y[r, t], u_prev[r, t], u[r, t])
+                rows["update"].append(np.diag(kf.P_prior - kf.P_post))
+                rows["prediction"].append(np.diag(kf.P_prior))
+                rows["estimate"].append(np.diag(kf.P_post))
+                rows["innovation"].append(np.diag(kf.S))
+            sums = {key: sums[key] + np.array(rows[key]) for key in sums}
+        return {key: torch.from_numpy(np.sqrt(np.maximum(v / y.shape[0], 0.0))) for key, v in sums.items()}
+
 
 class KalmanFilter(_KalmanBase):
     """The exact Kalman filter of a linear-Gaussian system x_{t+1} = A x_t + B u_t + w, y = C x + v."""

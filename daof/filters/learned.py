@@ -1,7 +1,8 @@
 """Learned filters as TensorDict modules: DAOF-v2, DAOF-v1 and the supervised SLF.
 
 * DAOF-v2: x̂_t = π(h_t^N)                          (model-free)
-* DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + π(h_t^N)     (model predictor + learned update)
+* DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N)  (model predictor + learned update,
+  π ∈ [−1, 1]ⁿ, the bound b_t sized from the noise: see ``FilterConfig.correction_bound``)
 * SLF:     x̂_t = φ(y_{t−N+1..t}, u_{t−N+1..t})     (open loop, trained by regression)
 
 One ``LearnedFilter`` holds the network (window normaliser → MLP → (loc, log σ)) and gives
@@ -31,6 +32,9 @@ from envs.system import StochasticSystem
 __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
+CORRECTION_BOUNDS = ("kalman", "process")
+#: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
+SCHEDULE_STEPS = 50
 #: window key an SLF reads (measurements and controls only, no fed-back estimates)
 OPEN_LOOP_KEY = "measurement_history"
 
@@ -46,29 +50,84 @@ class FilterConfig:
     include_controls: bool = True
     num_cells: int = 256
     depth: int = 3
-    #: DAOF-v1: the update π(h) is bounded to ± correction_sigmas · sqrt(diag Q)
+    #: DAOF-v1: the update is bounded to ± b_t = correction_sigmas · σ_t per state, where σ_t is
+    #: "process": sqrt(diag Q) at every step;
+    #: "kalman": max(sqrt(diag Q), the std of a UKF's own update at step t), which is wide in the
+    #: start-up, when the prior's error has to be pulled in, and settles at sqrt(diag Q) or above
     correction_sigmas: float = 4.0
+    correction_bound: str = "kalman"
+    #: closed-loop filters also read the start-up feature ρ_t (see ``startup_feature``)
+    startup_input: bool = True
+    #: DAOF-v1 also reads its newest innovation ν_t = y_t − g(f(x̂_{t−1}, u_{t−1}), u_t), which it
+    #: computes from h_t^N and the model it has anyway (``LearnedFilter.innovation``), divided by
+    #: a UKF's innovation std √diag S_t at step t: then the optimal unit action ≈ ν_t/√S_t / k at
+    #: every step, start-up included (a Kalman update is K_t ν_t and b_t ∝ std of K_t ν_t)
+    innovation_input: bool = True
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"unknown filter kind {self.kind!r}; valid: {sorted(KINDS)}")
         if not isinstance(self.window, int) or self.window < 1:
             raise ValueError(f"window must be an integer N >= 1, got {self.window!r}")
+        if self.correction_bound not in CORRECTION_BOUNDS:
+            raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
+
+
+def schedule_row(table: torch.Tensor, step) -> torch.Tensor:
+    """Row t of a per-step table [S, k] for t ≥ 1 (an int, a [..., 1] integer tensor, or None: settled).
+
+    Steps after S use the last row.
+    """
+    if step is None:
+        return table[-1]
+    if isinstance(step, int):
+        return table[min(max(step, 1), len(table)) - 1]
+    return table[step.squeeze(-1).clamp(1, len(table)) - 1]
+
+
+def startup_feature(step) -> torch.Tensor:
+    """ρ_t = max(0, 1 − (t − 1)/SCHEDULE_STEPS) for t ≥ 1 ([..., 1] integer tensor -> float [..., 1]).
+
+    1 at the first measurement, 0 once the filter has settled (an int t gives a float). After a reset the window is N
+    copies of the first frame and, past t = N, says nothing of t; the start-up (where the prior's
+    error is pulled in) needs different updates than the settled filter, so the networks read ρ_t.
+    """
+    if isinstance(step, int):  # the streaming filter's hot path
+        return min(max(1.0 - (step - 1) / SCHEDULE_STEPS, 0.0), 1.0)
+    # in float64 like the int path, then rounded: ``run`` and an env rollout agree to the bit
+    return (1.0 - (step.double() - 1.0) / SCHEDULE_STEPS).clamp(0.0, 1.0).float()
 
 
 class PolicyNet(nn.Module):
-    """Raw window -> per-channel normalisation -> MLP -> (loc, σ) of the pre-squash Gaussian.
+    """Raw window (+ ν_t, ρ_t) -> per-channel normalisation -> MLP -> (loc, σ) of the pre-squash Gaussian.
 
-    σ = exp(clamp(log σ, −20, 0.5)) as in DSAC-T. The normalisation is a pair of buffers fitted
-    on training data, so it travels with the weights.
+    σ = exp(clamp(log σ, −20, 0.5)) as in DSAC-T. The normalisation is buffers fitted on training
+    data, so it travels with the weights. ``innovation`` (a function of the window, or None) adds
+    the newest innovation ν_t divided by its std at step t (``innovation_scale``, one row per
+    step); ``startup_input`` adds ρ_t (``startup_feature``). The MLP's input is [window, ν_t, ρ_t].
     """
 
-    def __init__(self, in_features: int, out_dim: int, num_cells: int, depth: int):
+    def __init__(
+        self,
+        in_features: int,
+        out_dim: int,
+        num_cells: int,
+        depth: int,
+        startup_input: bool = False,
+        innovation=None,
+        innovation_dim: int = 0,
+    ):
         super().__init__()
         self.register_buffer("input_loc", torch.zeros(in_features))
         self.register_buffer("input_scale", torch.ones(in_features))
+        self.innovation = innovation
+        self.innovation_dim = innovation_dim if innovation else 0
+        self.register_buffer("innovation_scale", torch.ones(SCHEDULE_STEPS, self.innovation_dim))
+        self.startup_input = startup_input
+        #: width of ``features``: the MLP's input
+        self.feature_dim = in_features + self.innovation_dim + int(startup_input)
         self.mlp = MLP(
-            in_features=in_features,
+            in_features=self.feature_dim,
             out_features=2 * out_dim,
             depth=depth,
             num_cells=num_cells,
@@ -78,8 +137,17 @@ class PolicyNet(nn.Module):
     def normalize(self, window: torch.Tensor) -> torch.Tensor:
         return (window - self.input_loc) / self.input_scale
 
-    def forward(self, window: torch.Tensor):
-        loc, log_std = self.mlp(self.normalize(window)).chunk(2, -1)
+    def features(self, window: torch.Tensor, step=None) -> torch.Tensor:
+        """The MLP's input: the normalised window, then ν_t and ρ_t where used."""
+        parts = [self.normalize(window)]
+        if self.innovation is not None:
+            parts.append(self.innovation(window) / schedule_row(self.innovation_scale, step))
+        if self.startup_input:
+            parts.append(startup_feature(step))
+        return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
+
+    def forward(self, window: torch.Tensor, step=None):
+        loc, log_std = self.mlp(self.features(window, step)).chunk(2, -1)
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
 
@@ -122,10 +190,26 @@ class LearnedFilter(nn.Module, Filter):
         self.uses_controls = config.include_controls and s.control_dim > 0
         self.closed_loop = config.kind != "SLF"
         n = s.state_dim
-        self.policy = PolicyNet(config.window * self.frame_dim, n, config.num_cells, config.depth)
+        self.startup_input = config.startup_input and self.closed_loop
+        # ν_t needs u_t and u_{t−1} in the frame when the system has controls
+        self.innovation_input = (
+            config.innovation_input and config.kind == "DAOF-v1" and (self.uses_controls or s.control_dim == 0)
+        )
+        self.policy = PolicyNet(
+            config.window * self.frame_dim,
+            n,
+            config.num_cells,
+            config.depth,
+            self.startup_input,
+            self.innovation if self.innovation_input else None,
+            s.measurement_dim,
+        )
         if config.kind == "DAOF-v1":
-            half = config.correction_sigmas * s.process_noise.covariance.diagonal().sqrt()
-            low, high = -half, half
+            # the actor's action is the update in units of its bound b_t; b_t starts as the
+            # process-noise bound and ``set_correction_scale`` widens it for "kalman"
+            low, high = -torch.ones(n), torch.ones(n)
+            floor = config.correction_sigmas * s.process_noise.covariance.diagonal().sqrt()
+            self.register_buffer("correction_scale", floor.float().expand(SCHEDULE_STEPS, n).clone())
         else:
             low, high = s.state_low.clone(), s.state_high.clone()
         self.register_buffer("low", low.float())
@@ -146,8 +230,37 @@ class LearnedFilter(nn.Module, Filter):
         return HISTORY_KEY if self.closed_loop else OPEN_LOOP_KEY
 
     @property
+    def policy_in_keys(self) -> list[str]:
+        """What the policy network reads: the window, and t where it uses the start-up feature."""
+        return [self.input_key, "step"] if self.startup_input else [self.input_key]
+
+    @property
     def action_key(self) -> str:
         return KINDS[self.config.kind]
+
+    @property
+    def action_scale(self) -> torch.Tensor:
+        """What one unit of the actor's action is in state units, once the filter has settled.
+
+        DAOF-v1's action is its update in units of the bound b_t (the settled b is the schedule's
+        last entry); DAOF-v2 and SLF output the estimate itself. DSAC-T's entropy target uses it.
+        """
+        if self.config.kind == "DAOF-v1":
+            return self.correction_scale[-1]
+        return torch.ones_like(self.low)
+
+    def innovation(self, window: torch.Tensor, prediction: torch.Tensor | None = None) -> torch.Tensor:
+        """ν_t = y_t − g(x̂⁻_t, u_t), x̂⁻_t = f(x̂_{t−1}, u_{t−1}), from the newest frame of h_t^N.
+
+        ``prediction`` is x̂⁻_t where the caller has it already. Frames are [x̂_{t−1}, y_t, u_t, u_{t−1}].
+        """
+        s = self.system
+        n, m, c = s.state_dim, s.measurement_dim, s.control_dim
+        frame = window[..., -self.frame_dim :]
+        u, u_prev = frame[..., n + m : n + m + c], frame[..., n + m + c : n + m + 2 * c]
+        if prediction is None:
+            prediction = s.f(frame[..., :n], u_prev)
+        return frame[..., n : n + m] - s.g(prediction, u)
 
     # ----------------------------------------------------------------- normalisation
     @torch.no_grad()
@@ -165,20 +278,46 @@ class LearnedFilter(nn.Module, Filter):
         self.policy.input_loc.copy_(loc.repeat(self.config.window))
         self.policy.input_scale.copy_(scale.repeat(self.config.window))
 
+    @torch.no_grad()
+    def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
+        """DAOF-v1's per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
+
+        The update bound b_t = correction_sigmas · max(sqrt(diag Q), schedule["update"]_t) (for
+        the "kalman" bound) and the innovation scale √diag S_t = schedule["innovation"]_t (with the
+        innovation input). A shorter schedule is held at its last row. No-op for the other kinds.
+        Stored in the checkpoint.
+        """
+        if self.config.kind != "DAOF-v1":
+            return
+
+        def rows(values: torch.Tensor) -> torch.Tensor:
+            values = values.to(self.correction_scale)[:SCHEDULE_STEPS]
+            return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), -1)])
+
+        if self.config.correction_bound == "kalman":
+            floor = self.system.process_noise.covariance.diagonal().sqrt().to(self.correction_scale)
+            self.correction_scale.copy_(self.config.correction_sigmas * torch.maximum(rows(schedule["update"]), floor))
+        if self.innovation_input:
+            self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
+
+    def bound_at(self, step) -> torch.Tensor:
+        """DAOF-v1's bound b_t for ``step`` t ≥ 1 (an int, a [..., 1] integer tensor, or None: settled)."""
+        return schedule_row(self.correction_scale, step)
+
     # ----------------------------------------------------------------- networks
     def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
         """DAOF-v1's model predictor f(x̂_{t−1}, u_{t−1})."""
         return self.system.f(prev_estimate, prev_control)
 
-    def estimate(self, window, prev_estimate=None, prev_control=None) -> torch.Tensor:
-        """Deterministic estimate x̂_t (the squashed loc, plus the prediction for DAOF-v1)."""
-        return self._fast_estimate(self._inference_layers(), window, prev_estimate, prev_control)
+    def estimate(self, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
+        """Deterministic estimate x̂_t (the squashed loc; DAOF-v1 scales it by b_t and adds f)."""
+        return self._fast_estimate(self._inference_layers(), window, prev_estimate, prev_control, step)
 
     forward = estimate
 
     def stochastic_actor(self) -> ProbabilisticActor:
         """TanhNormal actor over ``action_key`` (the estimate, or the v1 correction) for DSAC-T."""
-        module = TensorDictModule(self.policy, in_keys=[self.input_key], out_keys=["loc", "scale"])
+        module = TensorDictModule(self.policy, in_keys=self.policy_in_keys, out_keys=["loc", "scale"])
         spec = Bounded(self.low, self.high, shape=self.low.shape, device=self.low.device)
         return ProbabilisticActor(
             module,
@@ -190,13 +329,15 @@ class LearnedFilter(nn.Module, Filter):
             return_log_prob=False,
         )
 
-    def _add_prediction(self, correction, prev_estimate, prev_control):
-        """x̂_t = f(x̂_{t−1}, u_{t−1}) + correction, kept in the plausible state range.
+    def _add_prediction(self, correction, prev_estimate, prev_control, step, prediction=None):
+        """x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ correction, kept in the plausible state range.
 
         Without the clamp an untrained update can push the predictor outside the region where
         the vehicle model is stable, and the estimate then runs away for the rest of the episode.
         """
-        estimate = correction + self.predict(prev_estimate, prev_control)
+        if prediction is None:
+            prediction = self.predict(prev_estimate, prev_control)
+        estimate = torch.addcmul(prediction, self.bound_at(step), correction)
         return torch.clamp(estimate, self.state_low, self.state_high)
 
     def exploration_policy(self) -> TensorDictSequential:
@@ -206,17 +347,17 @@ class LearnedFilter(nn.Module, Filter):
             return TensorDictSequential(actor)
         add = TensorDictModule(
             self._add_prediction,
-            in_keys=["correction", "prev_estimate", "prev_control"],
+            in_keys=["correction", "prev_estimate", "prev_control", "step"],
             out_keys=["action"],
         )
         return TensorDictSequential(actor, add)
 
     def filter_module(self) -> TensorDictModule:
-        """Deterministic filter: reads h_t (and x̂_{t−1}, u_{t−1} for v1), writes ``action``."""
-        in_keys = [self.input_key]
+        """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for v1, t where used), writes ``action``."""
         if self.config.kind == "DAOF-v1":
-            in_keys += ["prev_estimate", "prev_control"]
-        return TensorDictModule(self, in_keys=in_keys, out_keys=["action"])
+            in_keys = [self.input_key, "prev_estimate", "prev_control", "step"]
+            return TensorDictModule(self, in_keys=in_keys, out_keys=["action"])
+        return TensorDictModule(self, in_keys=dict(zip(["window", "step"], self.policy_in_keys)), out_keys=["action"])
 
     # ----------------------------------------------------------------- offline filtering
     def open_loop_frames(self, y, u, u_prev) -> torch.Tensor:
@@ -230,29 +371,44 @@ class LearnedFilter(nn.Module, Filter):
         y = hold_last_value(y, y_mean)
         return torch.cat([y, u, u_prev] if self.uses_controls else [y], -1)
 
-    def _inference_layers(self) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def _inference_layers(self) -> list[tuple[torch.Tensor, ...]]:
         """The policy's (weight, bias) per layer, for the deterministic filter only.
 
         The input normalisation is folded into the first layer and only the loc rows of the last
-        are kept, so one filter step costs four ``linear`` calls and three GELUs. Rebuilt on every
-        ``run`` (cheap), so it always matches the current weights.
+        are kept, so one filter step costs four ``linear`` calls and three GELUs. The first entry
+        also holds the weight columns of ν_t and of ρ_t (each None where unused); they enter as a
+        per-step bias. Rebuilt on every ``run`` (cheap), so it always
+        matches the current weights.
         """
-        linears = [m for m in self.policy.mlp if isinstance(m, nn.Linear)]
+        policy = self.policy
+        linears = [m for m in policy.mlp if isinstance(m, nn.Linear)]
         first, last, n = linears[0], linears[-1], self.system.state_dim
-        w0 = first.weight / self.policy.input_scale
-        layers = [(w0, first.bias - w0 @ self.policy.input_loc)]
+        width, m = policy.input_loc.numel(), policy.innovation_dim
+        w0 = first.weight[:, :width] / policy.input_scale
+        w_nu = first.weight[:, width : width + m] if m else None
+        w_rho = first.weight[:, width + m] if self.startup_input else None
+        layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
         return layers + [(last.weight[:n], last.bias[:n])]
 
-    def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None) -> torch.Tensor:
+    def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
-        h = window
-        for weight, bias in layers[:-1]:
+        (w0, b0, w_nu, w_rho), *hidden = layers[:-1]
+        v1 = self.config.kind == "DAOF-v1"
+        prediction = self.predict(prev_estimate, prev_control) if v1 else None
+        # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
+        if w_nu is not None:
+            nu = self.innovation(window, prediction) / schedule_row(self.policy.innovation_scale, step)
+            b0 = b0 + nu @ w_nu.T
+        if w_rho is not None and step is not None:
+            b0 = b0 + startup_feature(step) * w_rho
+        h = nn.functional.gelu(nn.functional.linear(window, w0, b0))
+        for weight, bias in hidden:
             h = nn.functional.gelu(nn.functional.linear(h, weight, bias))
         u = nn.functional.linear(h, *layers[-1])  # the pre-squash loc; a = (hi−lo)/2 · tanh(u) + (hi+lo)/2
         out = torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(u))
-        if self.config.kind == "DAOF-v1":
-            out = self._add_prediction(out, prev_estimate, prev_control)
+        if v1:
+            out = self._add_prediction(out, prev_estimate, prev_control, step, prediction)
         return out
 
     @torch.inference_mode()
@@ -281,7 +437,7 @@ class LearnedFilter(nn.Module, Filter):
             frame = torch.cat([prev, measured[:, t]], -1) if self.closed_loop else measured[:, t]
             # slide the window by one frame; right after the reset it is N copies of frame 1
             window = frame.repeat(1, N) if window is None else torch.cat([window[:, width:], frame], -1)
-            prev = self._fast_estimate(layers, window, prev, u_prev[:, t])
+            prev = self._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)
             out[:, t] = prev
         return out
 

@@ -51,6 +51,9 @@ class FilterTrainer:
                 num_cells=int(net.num_cells),
                 depth=int(net.depth),
                 correction_sigmas=float(net.get("correction_sigmas", 4.0)),
+                correction_bound=str(net.get("correction_bound", "kalman")),
+                startup_input=bool(net.get("startup_input", True)),
+                innovation_input=bool(net.get("innovation_input", True)),
             ),
             self.system,
         )

@@ -27,6 +27,7 @@ from torchrl.objectives import SoftUpdate
 
 from daof.train.base import FilterTrainer
 from daof.train.networks import make_critic
+from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
@@ -48,10 +49,30 @@ class DSACTTrainer(FilterTrainer):
         if kind is None:
             raise ValueError(f"version must be 'v1' or 'v2', got {cfg.version!r}")
         super().__init__(cfg, kind)
+        self._make_schedules()
         self._make_loss()
         self._make_data()
 
     # ----------------------------------------------------------------- factories
+    def _make_schedules(self) -> None:
+        """DAOF-v1's update bound and input scale, and the reward weights, per start-up step.
+
+        All come from one UKF run (``daof.train.schedules``), so they need a model;
+        ``network.correction_bound=process`` and ``reward.weights=constant`` switch the bound and
+        the weights off. Deterministic in ``seeds.normalizer``, so a resumed run rebuilds the same.
+        """
+        cfg = self.cfg
+        self.reward_weights = None
+        mode = cfg.get("reward", {}).get("weights", "kalman")
+        if mode not in ("kalman", "constant"):
+            raise ValueError(f"reward.weights must be 'kalman' or 'constant', got {mode!r}")
+        if not self.system.has_model or not (self.filter.config.kind == "DAOF-v1" or mode == "kalman"):
+            return
+        schedule = ukf_schedule(self.system, seed=int(cfg.seeds.normalizer) + 1)
+        self.filter.set_schedules(schedule)
+        if mode == "kalman":
+            self.reward_weights = reward_weight_schedule(self.system, schedule["estimate"])
+
     def _make_loss(self) -> None:
         cfg = self.cfg
         self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth))
@@ -81,7 +102,9 @@ class DSACTTrainer(FilterTrainer):
         system's, and what matters for filtering is the noise relative to the achievable error.
         The target is the entropy of a Gaussian with std k · ``system.error_scale`` per state
         (the tanh barely bends at the small corrections a trained filter makes):
-        Σ_i log(√(2πe) · k · e_i). ``loss.target_entropy`` set to a number overrides it.
+        Σ_i log(√(2πe) · k · e_i / a_i), with a the state-unit size of one unit of action
+        (``LearnedFilter.action_scale``: DAOF-v1 acts in units of its settled update bound).
+        ``loss.target_entropy`` set to a number overrides it.
         """
         fixed = self.cfg.loss.get("target_entropy", "auto")
         if fixed != "auto":
@@ -89,13 +112,15 @@ class DSACTTrainer(FilterTrainer):
         k = float(self.cfg.loss.get("exploration_std", 0.4))
         if k <= 0:
             raise ValueError(f"loss.exploration_std must be > 0, got {k}")
-        std = k * self.system.error_scale
+        std = k * self.system.error_scale / self.filter.action_scale
         return float((std * math.sqrt(2 * math.pi * math.e)).log().sum())
 
     def _make_data(self) -> None:
         cfg = self.cfg
         c = cfg.collector
-        env = FilteringEnv(self.system, int(c.env_batch), int(c.episode_steps), seed=int(cfg.seeds.train))
+        env = FilteringEnv(
+            self.system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
+        )
         self.base_env = env
         self.env = with_window(env, int(cfg.window), self.filter.uses_controls)
         self.buffer = TensorDictReplayBuffer(
@@ -162,6 +187,19 @@ class DSACTTrainer(FilterTrainer):
         self.updates += 1
         return out
 
+    def set_learning_rates(self) -> float:
+        """Actor and critic learning rates on a cosine from ``lr`` to ``optim.lr_final`` × lr over the budget.
+
+        A function of the frame count only, so a resumed run continues the same schedule. Returns the factor.
+        """
+        final = float(self.cfg.optim.get("lr_final", 1.0))
+        progress = min(self.frames / int(self.cfg.collector.total_frames), 1.0)
+        factor = final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
+        for optim, key in ((self.optim_actor, "lr_actor"), (self.optim_critic, "lr_critic")):
+            for group in optim.param_groups:
+                group["lr"] = float(self.cfg.optim[key]) * factor
+        return factor
+
     def train(self) -> dict:
         """Collect, update, validate and checkpoint until ``collector.total_frames``."""
         c = self.cfg.collector
@@ -179,6 +217,7 @@ class DSACTTrainer(FilterTrainer):
                     self.frames += batch.numel()
                 metrics = {}
                 if self.frames >= int(c.warmup_frames):
+                    self.set_learning_rates()
                     with timeit("update"):
                         for _ in range(updates_per_batch):
                             metrics = {**metrics, **self._update()}

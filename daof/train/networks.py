@@ -13,7 +13,7 @@ __all__ = ["FilterCritic", "make_critic"]
 
 
 class FilterCritic(nn.Module):
-    """Q(h, a) -> (mean μ, raw scale) with inputs normalised like the actor's.
+    """Q(h, a) -> (mean μ, raw scale) on the actor's own input features (normalised window, ν_t, ρ_t).
 
     The window uses the filter's own input normalisation (shared buffers, not copied) and the
     action is mapped to [−1, 1] by the actor's bounds, so the critic sees O(1) inputs.
@@ -24,21 +24,22 @@ class FilterCritic(nn.Module):
         self._actor = [actor]  # a reference, not a submodule: its weights are not the critic's
         n = actor.system.state_dim
         self.mlp = MLP(
-            in_features=actor.policy.input_loc.numel() + n,
+            in_features=actor.policy.feature_dim + n,
             out_features=2,
             depth=depth,
             num_cells=num_cells,
             activation_class=nn.GELU,
         )
 
-    def forward(self, window: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, window: torch.Tensor, action: torch.Tensor, step=None) -> torch.Tensor:
         actor = self._actor[0]
-        h = actor.policy.normalize(window)
+        h = actor.policy.features(window, step)
         a = (action - (actor.high + actor.low) / 2) / ((actor.high - actor.low) / 2)
         return self.mlp(torch.cat([h, a], -1))
 
 
 def make_critic(actor: LearnedFilter, num_cells: int = 256, depth: int = 3) -> TensorDictModule:
-    """Critic module reading (h_t^N, action key) and writing ``state_action_value`` [.., 2]."""
+    """Critic module reading (h_t^N, t where the actor reads it, action key), writing ``state_action_value`` [.., 2]."""
     net = FilterCritic(actor, num_cells, depth)
-    return TensorDictModule(net, in_keys=[actor.input_key, actor.action_key], out_keys=["state_action_value"])
+    in_keys = dict(zip(["window", "step"], actor.policy_in_keys)) | {"action": actor.action_key}
+    return TensorDictModule(net, in_keys=in_keys, out_keys=["state_action_value"])
