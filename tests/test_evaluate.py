@@ -111,3 +111,216 @@ def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
         )
     reused = ["reused finished result" in line for line in logs if line.startswith("[1/1] EKF:") and "RMSE" not in line]
     assert reused == [False, True, False]
+
+
+# ----------------------------------------------------------------------------- scenarios side by side
+def _small_study(system):
+    from daof.evaluate import run_study
+    from daof.filters import EKF, UKF, ParticleFilter
+
+    filters = {
+        "EKF": EKF(system),
+        "UKF": UKF(system),
+        "PF": ParticleFilter(system, 100, seed=1),
+        "PF-oracle": ParticleFilter(system, 300, seed=2),
+    }
+    return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None)
+
+
+def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
+    """One table of RMSE per state per filter per scenario (best in bold), the winner of each scenario,
+    every scenario's table with its ratio label, links to the per-scenario reports, CSV and JSON."""
+    from daof.evaluate.report import write_scenario_report
+    from envs import make_system
+
+    studies = {sc: _small_study(make_system("veh2dof", sc)) for sc in ("nominal", "mismatch")}
+    reports = {sc: tmp_path / sc / "report" / "report.md" for sc in studies}
+    path = write_scenario_report(studies, tmp_path / "report", title="side by side", profile="tiny", reports=reports)
+    text = path.read_text()
+    head = "| filter | nominal: beta [rad] | nominal: yaw_rate [rad/s] | mismatch: beta [rad] | mismatch: yaw_rate"
+    assert head in text
+    results = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert results["scenarios"] == ["nominal", "mismatch"]
+    for sc, study in studies.items():
+        names = list(study.results)
+        rmse = torch.tensor([study.results[n].rmse for n in names])
+        best = [names[i] for i in rmse.argmin(0).tolist()]
+        assert results["winners"][sc]["per_state"] == dict(zip(["beta", "yaw_rate"], best))
+        score = (rmse / rmse.min(0).values).mean(1)
+        assert results["winners"][sc]["overall"] == names[int(score.argmin())]
+        practical = [i for i, n in enumerate(names) if n != "PF-oracle"]
+        assert results["winners"][sc]["overall_without_oracle"] == names[min(practical, key=lambda i: score[i])]
+        assert results["studies"][sc]["filters"]["UKF"]["rmse"] == study.results["UKF"].rmse
+        # the winner's cell is bold in the summary table
+        j = 0 if sc == "nominal" else 2
+        row = next(line for line in text.splitlines() if line.startswith(f"| {best[0]} | "))
+        assert row.split(" | ")[1 + j] == f"**{study.results[best[0]].rmse[0]:.4g}**"
+    assert f"| mismatch | {results['winners']['mismatch']['per_state']['beta']} |" in text
+    assert "## Scenario `nominal` ([full report](../nominal/report/report.md))" in text
+    assert "ratio to PF-oracle (beta / yaw_rate)" in text  # nominal: the near-optimal reference
+    assert "ratio to PF-oracle (nominal model) (beta / yaw_rate)" in text  # mismatch: only a nominal-model PF
+    assert "the PF-oracle is the near-optimal reference only on `nominal`" in text
+    lines = (tmp_path / "report" / "results.csv").read_text().splitlines()
+    assert lines[0].startswith("scenario,filter,rmse_beta,rmse_yaw_rate,ratio_beta") and len(lines) == 1 + 8
+    assert (tmp_path / "report" / "rmse_by_scenario.png").is_file()
+
+
+def test_a_non_finite_filter_never_wins_a_scenario():
+    from types import SimpleNamespace
+
+    from daof.evaluate.report import scenario_winners
+
+    def row(rmse):
+        return FilterResult(rmse=rmse, per_run_rmse=[rmse], cost_ms=None, threads=1, throughput_per_s=1)
+
+    study = SimpleNamespace(
+        system=SimpleNamespace(state_names=("a", "b")),
+        results={
+            "bad": row([float("nan"), 0.001]),
+            "PF-oracle": row([0.9, 1.5]),
+            "A": row([1.0, 2.0]),
+            "B": row([2.0, 1.2]),
+        },
+    )
+    w = scenario_winners(study)
+    assert w["per_state"] == {"a": "PF-oracle", "b": "B"}  # "bad" has the lowest b, but failed on a
+    # mean of RMSE / best per state: PF-oracle (1 + 1.5/1.2)/2 < A (1/0.9 + 2/1.2)/2 < B (2/0.9 + 1)/2
+    assert w["overall"] == "PF-oracle" and w["overall_without_oracle"] == "A"
+    assert w["score"]["bad"] is None
+
+
+def _experiment1():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("experiment1", ROOT / "recipes/veh2dof/experiment.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _experiment1_cfg(*overrides):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(ROOT / "recipes/veh2dof"), version_base="1.3"):
+        return compose(config_name="experiment", overrides=list(overrides))
+
+
+def test_each_scenario_trains_on_its_own_data_in_its_own_directory(tmp_path):
+    recipe = _experiment1()
+    cfg = _experiment1_cfg("profile=tiny", f"root={tmp_path}", "scenarios=[nominal,mismatch,outliers]")
+    assert list(cfg.scenarios) == ["nominal", "mismatch", "outliers"]
+    dirs = set()
+    for sc in cfg.scenarios:
+        c = recipe.scenario_config(cfg, sc)
+        assert Path(c.output_root) == tmp_path / sc and Path(c.report_dir) == tmp_path / sc / "report"
+        jobs = recipe.training_jobs(c, cfg.profiles.tiny, Path(c.output_root), f" [{sc}]")
+        assert list(jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)"]
+        for name, job in jobs.items():
+            assert f"scenario={sc}" in job.overrides and job.name == f"{name} [{sc}]"
+            assert f"window={recipe.job_window(name)}" in job.overrides
+            dirs.add(job.output_dir)
+    assert len(dirs) == 12 and Path(cfg.combined_report_dir) == tmp_path / "report"
+    # the default is one scenario, in the directory the README names
+    single = _experiment1_cfg()
+    assert list(single.scenarios) == ["nominal"] and single.report_dir == "runs/experiment1/quick/nominal/report"
+    # several scenarios cannot share one output_root
+    clash = _experiment1_cfg("profile=tiny", f"output_root={tmp_path}", "scenarios=[nominal,mismatch]")
+    with pytest.raises(SystemExit, match="would share the output directory .* set root=DIR"):
+        recipe.main(clash)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("scenarios=[nominal,icy]", "unknown scenario 'icy' for veh2dof; valid: ['nominal', 'mismatch', 'outliers']"),
+        ("profile=huge", "unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"),
+    ],
+)
+def test_experiment1_bad_scenario_or_profile_exits_with_one_line(tmp_path, override, message):
+    cmd = [sys.executable, str(ROOT / "recipes/veh2dof/experiment.py"), override, f"root={tmp_path}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode != 0
+    assert done.stderr.strip().splitlines() == [message], done.stderr
+    assert "Traceback" not in done.stdout + done.stderr
+    assert not list(tmp_path.glob("*/*-N*")), "nothing trains on a bad input"
+
+
+@pytest.mark.slow
+def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
+    """Two scenarios at the tiny profile (one window): per-scenario reports and the combined one."""
+    cmd = [
+        sys.executable,
+        str(ROOT / "recipes/veh2dof/experiment.py"),
+        "profile=tiny",
+        f"root={tmp_path}",
+        "scenarios=[nominal,mismatch]",
+        "profiles.tiny.windows=[20]",
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    for sc in ("nominal", "mismatch"):
+        results = json.loads((tmp_path / sc / "report" / "results.json").read_text())
+        assert results["scenario"] == sc and set(results["filters"]) >= {"EKF", "PF-oracle", "SLF", "DAOF-v1"}
+    combined = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert combined["scenarios"] == ["nominal", "mismatch"] and set(combined["winners"]) == {"nominal", "mismatch"}
+    assert f"combined report: {tmp_path / 'report' / 'report.md'}" in done.stdout
+
+
+# ----------------------------------------------------------------------------- bad inputs, one line each
+def test_stale_or_missing_checkpoints_exit_with_one_line(tmp_path):
+    """A checkpoint of another system, scenario or window in a job's directory, or none at all."""
+    from daof.evaluate.experiment import load_trained
+    from daof.evaluate.jobs import TrainingJob
+    from daof.filters.learned import FilterConfig, LearnedFilter
+    from envs import make_system
+
+    LearnedFilter(FilterConfig(kind="DAOF-v2", system="veh2dof", window=4, num_cells=8)).save(
+        tmp_path / "v" / "best.pt"
+    )
+    job = TrainingJob("DAOF-v2", Path("train_daof.py"), tmp_path / "v", 100)
+    system = make_system("veh2dof")
+    assert load_trained({"DAOF-v2": job}, system, {"system": "veh2dof", "window": 4})["DAOF-v2"].config.window == 4
+    cases = [
+        ({"window": 20}, "has window=4, expected 20"),
+        ({"system": "linear"}, "has system='veh2dof', expected 'linear'"),
+        ({"scenario": "mismatch"}, "has scenario='nominal', expected 'mismatch'"),
+    ]
+    for expect, match in cases:
+        with pytest.raises(
+            SystemExit, match=f"^DAOF-v2: checkpoint .*best.pt {match} \\(train it again: delete .*v\\)$"
+        ) as error:
+            load_trained({"DAOF-v2": job}, system, lambda name, e=expect: e)
+        assert "\n" not in str(error.value)
+    missing = TrainingJob("SLF", Path("train_slf.py"), tmp_path / "none", 100)
+    with pytest.raises(SystemExit, match="^SLF: no filter checkpoint at .*none/best.pt"):
+        load_trained({"SLF": missing}, system, {"system": "veh2dof"})
+
+
+def test_a_failed_training_exits_with_one_line(tmp_path):
+    from daof.evaluate.experiment import train
+    from daof.evaluate.jobs import TrainingJob
+
+    script = tmp_path / "broken.py"
+    script.write_text("import sys\nprint('bad override')\nsys.exit(2)\n")
+    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    with pytest.raises(SystemExit) as error:
+        train([job], parallel=1, log=lambda _: None)
+    assert str(error.value) == "training failed for ['SLF']; rerun the same command to resume"
+    assert "bad override" in (tmp_path / "slf" / "train.log").read_text()  # the log it points to holds the cause
+
+
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "SLF"])
+def test_learned_filters_reject_bad_input_with_one_line(kind, veh):
+    """NaN / inf controls, inf measurements, wrong shapes and dtypes: one ValueError line naming the
+    filter and the entry, raised before any network runs (the classical filters: test_missing_measurements)."""
+    from test_missing_measurements import bad_inputs
+
+    from daof.filters.learned import FilterConfig, LearnedFilter
+
+    f = LearnedFilter(FilterConfig(kind=kind, system="veh2dof", window=4, num_cells=8), veh)
+    for case, (data, key) in bad_inputs(veh.simulate(2, 6, seed=0)).items():
+        with pytest.raises(ValueError) as error:
+            f.run(data)
+        message = str(error.value)
+        assert message.startswith(f"{kind}: ") and key in message and "\n" not in message, (case, message)

@@ -2,19 +2,34 @@
 
 An experiment recipe (``recipes/*/experiment.py``) trains its learned filters as ``TrainingJob``s,
 loads their best checkpoints, runs the study and writes the report; these helpers keep the parts
-that are the same for every experiment in one place.
+that are the same for every experiment in one place. A bad input to a recipe (an unknown profile
+or scenario, a checkpoint of another run, a failed training) ends it with one line naming the
+problem (``SystemExit``), not a traceback.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig
 
-from daof.evaluate.jobs import TrainingJob
+from daof.evaluate.jobs import TrainingJob, run_jobs
+from daof.evaluate.study import ORACLE, Study, run_study
+from daof.filters.learned import load_filter
+from envs import make_system
 
-__all__ = ["checkpoint_fingerprint", "learning_curves", "select_profile", "training_costs"]
+__all__ = [
+    "checkpoint_fingerprint",
+    "learning_curves",
+    "load_trained",
+    "run_trained_study",
+    "select_profile",
+    "select_scenarios",
+    "train",
+    "training_costs",
+]
 
 
 def select_profile(cfg: DictConfig) -> DictConfig:
@@ -22,6 +37,95 @@ def select_profile(cfg: DictConfig) -> DictConfig:
     if cfg.profile not in cfg.profiles:
         raise SystemExit(f"unknown profile {cfg.profile!r}; valid: {list(cfg.profiles)}")
     return cfg.profiles[cfg.profile]
+
+
+def select_scenarios(system: str, scenarios) -> list[str]:
+    """The scenario names of one run (a name or a list of names), checked before anything trains.
+
+    An unknown or repeated name, or an empty list, exits with one line (``make_system``'s message
+    names the valid scenarios).
+    """
+    names = [scenarios] if isinstance(scenarios, str) else list(scenarios or [])
+    if not names or not all(isinstance(n, str) for n in names):
+        raise SystemExit(f"scenarios must be one or more scenario names of {system}, got {_plain(scenarios)!r}")
+    if len(set(names)) != len(names):
+        raise SystemExit(f"scenarios {names} name a scenario more than once")
+    for name in names:
+        try:
+            make_system(system, name)
+        except ValueError as error:
+            raise SystemExit(str(error)) from None
+    return names
+
+
+def _plain(value):
+    return list(value) if isinstance(value, (ListConfig, list, tuple)) else value
+
+
+def train(jobs: Sequence[TrainingJob], parallel: int, log=print) -> None:
+    """``run_jobs``; a failed training exits with one line naming it and its log instead of a traceback."""
+    try:
+        run_jobs(list(jobs), parallel=parallel, log=log)
+    except RuntimeError as error:
+        raise SystemExit(str(error)) from None
+
+
+def load_trained(jobs: dict[str, TrainingJob], system, expect: dict | Callable[[str], dict] | None = None) -> dict:
+    """Each job's ``best.pt`` as a filter (name -> ``LearnedFilter``), checked against ``expect``.
+
+    ``expect``: config fields every checkpoint must have (``{"system": ..., "window": ...}``), or a
+    function of the job name giving them. A missing checkpoint, or one of another system, scenario
+    or window (a stale output directory), exits with one line that names the job and its directory.
+    """
+    filters = {}
+    for name, job in jobs.items():
+        fields = expect(name) if callable(expect) else expect
+        path = job.output_dir / "best.pt"
+        try:
+            filters[name] = load_filter(path, system, expect=fields)
+        except (FileNotFoundError, ValueError) as error:
+            raise SystemExit(f"{name}: {error} (train it again: delete {job.output_dir})") from None
+    return filters
+
+
+def run_trained_study(
+    system,
+    jobs: dict[str, TrainingJob],
+    *,
+    runs: int,
+    steps: int,
+    seed: int,
+    cache_dir: str | Path,
+    classical: dict | None = None,
+    expect: dict | Callable[[str], dict] | None = None,
+    timing_threads: int = 1,
+    reference: str = ORACLE,
+    log=print,
+) -> tuple[Study, dict]:
+    """The study of ``classical`` filters (name -> filter) and every job's best checkpoint after them.
+
+    Learned filters are cached under a digest of their checkpoint (``checkpoint_fingerprint``), so
+    a retrained filter is never scored from a stale cache entry. Returns the study and every filter.
+    """
+    filters = dict(classical or {})
+    clash = sorted(set(filters) & set(jobs))
+    if clash:
+        raise ValueError(f"filter names {clash} are both classical filters and training jobs")
+    filters.update(load_trained(jobs, system, expect))
+    versions = {name: checkpoint_fingerprint([job.output_dir / "best.pt"]) for name, job in jobs.items()}
+    study = run_study(
+        system,
+        filters,
+        runs,
+        steps,
+        seed,
+        timing_threads,
+        cache_dir=cache_dir,
+        log=log,
+        versions=versions,
+        reference=reference,
+    )
+    return study, filters
 
 
 def learning_curves(filters: dict, names=None) -> dict[str, list[dict]]:

@@ -10,7 +10,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-__all__ = ["plot_one_run", "plot_one_run_state", "plot_per_run_boxes", "plot_learning_curves", "plot_window_study"]
+__all__ = [
+    "plot_one_run",
+    "plot_one_run_state",
+    "plot_per_run_boxes",
+    "plot_learning_curves",
+    "plot_scenario_rmse",
+    "plot_window_study",
+]
 
 
 def _thousands(x, _pos=None) -> str:
@@ -123,4 +130,30 @@ def plot_window_study(rows: list[dict], state_names, path: Path) -> Path:
         ax.set_xticks(windows)
         ax.grid(alpha=0.3)
     fig.suptitle("sliding-window study (DAOF-v1)")
+    return _save(fig, path)
+
+
+def plot_scenario_rmse(rmse: dict[str, dict[str, list[float]]], state_names, units, path: Path) -> Path:
+    """RMSE per state as grouped bars: one group per scenario, one bar per filter (log scale).
+
+    ``rmse``: scenario -> filter -> RMSE per state.
+    """
+    scenarios = list(rmse)
+    names = list(dict.fromkeys(n for rows in rmse.values() for n in rows))
+    width = 0.8 / max(len(names), 1)
+    fig, axes = plt.subplots(
+        1, len(state_names), figsize=(max(6, 1.8 * len(scenarios) + 2) * len(state_names) / 1.3, 4), squeeze=False
+    )
+    for j, (state, unit) in enumerate(zip(state_names, units)):
+        ax = axes[0, j]
+        for k, name in enumerate(names):
+            xs = [i + (k - (len(names) - 1) / 2) * width for i, sc in enumerate(scenarios) if name in rmse[sc]]
+            ys = [rmse[sc][name][j] for sc in scenarios if name in rmse[sc]]
+            ax.bar(xs, ys, width, label=name)
+        ax.set_xticks(range(len(scenarios)), scenarios)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"RMSE {state} [{unit}]")
+        ax.grid(alpha=0.3, axis="y")
+    axes[0, -1].legend(fontsize=7, bbox_to_anchor=(1.02, 1.0), loc="upper left")  # outside: bars stay visible
+    fig.suptitle("RMSE per scenario")
     return _save(fig, path)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
+import os
 import platform
 import subprocess
 from pathlib import Path
@@ -12,8 +14,18 @@ from pathlib import Path
 import torch
 
 from daof.evaluate import figures
+from daof.evaluate.study import ORACLE
 
-__all__ = ["environment_info", "in_report_units", "write_report", "PAPER_TABLE_I", "PAPER_TABLE_II"]
+__all__ = [
+    "environment_info",
+    "in_report_units",
+    "ratio_label",
+    "scenario_winners",
+    "write_report",
+    "write_scenario_report",
+    "PAPER_TABLE_I",
+    "PAPER_TABLE_II",
+]
 
 #: The paper's Table I (Experiment I): RMSE β [rad], RMSE r [rad/s], cost [ms]. Context only: the
 #: paper does not publish its system parameters, so the absolute numbers are not comparable.
@@ -54,8 +66,6 @@ def environment_info() -> dict:
                 break
     except OSError:
         pass
-    import os
-
     return {
         "commit": commit,
         "machine": f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}",
@@ -74,12 +84,42 @@ def _fmt(values, digits=4) -> str:
     return " / ".join(f"{v:.{digits}g}" for v in values)
 
 
+def ratio_label(study) -> str:
+    """What the ratio column is relative to: the study's reference filter, and on a scenario other
+    than nominal, that the PF-oracle filters with the nominal model there (so it is no optimum)."""
+    ref = getattr(study, "reference", None) or ORACLE
+    if ref == ORACLE and study.system.scenario != "nominal":
+        return f"ratio to {ref} (nominal model)"
+    return f"ratio to {ref}"
+
+
+def _reference_lines(study) -> list[str]:
+    """One sentence under the results table on what the ratios and the diverged count compare with."""
+    ref = getattr(study, "reference", None)
+    if ref is None:
+        return []
+    if ref == ORACLE and study.system.scenario != "nominal":
+        return [
+            f"Scenario `{study.system.scenario}`: the PF-oracle is the near-optimal reference only on `nominal`. "
+            "Here it filters with the nominal model like every model-based filter, so the ratios are relative "
+            "to the nominal-model PF-oracle (a ratio below 1 is possible), not to the optimum; a diverged run "
+            "has a non-finite estimate or an RMSE above 10x its pooled RMSE.",
+            "",
+        ]
+    return [
+        f"Ratios are per state, relative to {ref}; a diverged run has a non-finite estimate or an RMSE above 10x "
+        f"{ref}'s pooled RMSE.",
+        "",
+    ]
+
+
 def _results_table(study) -> list[str]:
     s = study.system
     states = " / ".join(f"{n} [{u}]" for n, u in zip(s.state_names, s.state_units))
     lines = [
-        f"| filter | RMSE {states} | ratio to PF-oracle | per-run RMSE median (IQR) | cost per estimate [ms] "
-        "(batch 1) | throughput [estimates/s] (batch R) | diverged runs | covariance repairs |",
+        f"| filter | RMSE {states} | {ratio_label(study)} ({' / '.join(s.state_names)}) "
+        "| per-run RMSE median (IQR) | cost per estimate [ms] (batch 1) | throughput [estimates/s] (batch R) "
+        "| diverged runs | covariance repairs |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, r in study.results.items():
@@ -147,7 +187,7 @@ def _state_columns_table(study, units) -> list[str]:
     has_ratio = any(r.ratio_to_oracle is not None for r in results.values())
     has_repairs = any(r.repairs for r in results.values())
     head = ["filter", *(f"RMSE {n} [{u}]" for n, u in zip(s.state_names, units))]
-    head += ["ratio to PF-oracle"] if has_ratio else []
+    head += [ratio_label(study)] if has_ratio else []
     head += ["cost per estimate [ms] (batch 1)", "throughput [estimates/s] (batch R)"]
     head += ["diverged runs" if has_ratio else "diverged runs (non-finite)"]
     head += ["covariance repairs"] if has_repairs else []
@@ -187,12 +227,15 @@ def write_report(
     notes: list[str] | None = None,
     meta: dict | None = None,
     per_state: bool = False,
+    requirements: list[dict] | None = None,
 ) -> Path:
     """Write ``report.md``, ``results.csv``, ``results.json`` and figures into ``out_dir``.
 
     Numbers are in the system's reporting units where it has them (``in_report_units``).
     ``per_state``: the paper's Table II layout (one column per state, a per-run spread table) and
     one state/error figure per state instead of one figure of all states.
+    ``requirements``: ``{"requirement": text, "met": bool, "detail": text}`` each, stated as met or
+    not met in a section of their own (and in results.json); the caller decides them from the numbers.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -206,6 +249,8 @@ def write_report(
         payload["window_study"] = window_rows
     if training:
         payload["training"] = training
+    if requirements:
+        payload["requirements"] = requirements
     (out / "results.json").write_text(json.dumps(payload, indent=2))
     with (out / "results.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
@@ -228,7 +273,7 @@ def write_report(
         figs = {"one run": figures.plot_one_run(study, out / "run0_states_errors.png")}
     figs["per-run RMSE"] = figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png", units=units)
     if curves:
-        refs = {k: study.results[k].rmse for k in ("UKF", "PF-oracle") if k in study.results}
+        refs = {k: study.results[k].rmse for k in ("UKF", ORACLE, study.reference) if k in study.results}
         if scale is not None:  # validation RMSEs are logged in SI units
             k = scale.tolist()
             curves = {
@@ -259,7 +304,14 @@ def write_report(
         "",
         *(_state_columns_table(study, units) if per_state else _results_table(study)),
         "",
+        *_reference_lines(study),
     ]
+    if requirements:
+        lines += ["## Requirements", ""]
+        for r in requirements:
+            verdict = "**met**" if r["met"] else "**not met**"
+            lines.append(f"- {r['requirement']}: {verdict}. {r.get('detail', '')}".rstrip())
+        lines.append("")
     if window_rows:
         lines += [
             "## Sliding-window study (DAOF-v1)",
@@ -312,6 +364,158 @@ def write_report(
     if notes:
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
+    lines += [
+        "## Provenance",
+        "",
+        f"- commit: `{info['commit']}`",
+        f"- machine: {info['machine']}",
+        f"- versions: {', '.join(f'{k} {v}' for k, v in info['versions'].items())}",
+        *[f"- {k}: {v}" for k, v in (meta or {}).items()],
+        "",
+    ]
+    (out / "report.md").write_text("\n".join(lines))
+    return out / "report.md"
+
+
+def scenario_winners(study) -> dict:
+    """Which filter wins one study: the lowest RMSE per state, and overall the lowest mean over states
+    of RMSE / best RMSE (unit-free), with and without the PF-oracle (a reference, not a practical filter).
+
+    A filter with a non-finite RMSE on any state (it failed) wins nothing.
+    """
+    names = list(study.results)
+    rmse = torch.tensor([study.results[n].rmse for n in names], dtype=torch.float64)
+    rmse[~torch.isfinite(rmse).all(1)] = math.inf
+    score = (rmse / rmse.min(0).values).mean(1)
+
+    def best(values, allowed) -> str | None:
+        finite = [i for i in allowed if math.isfinite(values[i])]
+        return names[min(finite, key=lambda i: values[i])] if finite else None
+
+    every = list(range(len(names)))
+    practical = [i for i in every if names[i] != ORACLE]
+    return {
+        "per_state": {st: best(rmse[:, j].tolist(), every) for j, st in enumerate(study.system.state_names)},
+        "overall": best(score.tolist(), every),
+        "overall_without_oracle": best(score.tolist(), practical),
+        "score": {n: (v if math.isfinite(v) else None) for n, v in zip(names, score.tolist())},
+    }
+
+
+def write_scenario_report(
+    studies: dict,
+    out_dir: str | Path,
+    *,
+    title: str,
+    profile: str,
+    reports: dict[str, Path] | None = None,
+    notes: list[str] | None = None,
+    meta: dict | None = None,
+) -> Path:
+    """One report of the same filters on several scenarios (scenario -> ``Study`` of one system).
+
+    ``report.md`` holds a summary table (RMSE per state per filter per scenario, the best of each
+    column in bold), which filter wins each scenario (``scenario_winners``), then every scenario's
+    results table with a link to its own full report (``reports``: scenario -> report.md). The
+    same numbers go to ``results.csv`` / ``results.json``, and a bar chart of RMSE per scenario.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    first = next(iter(studies.values()))
+    s = first.system
+    names = list(dict.fromkeys(n for st in studies.values() for n in st.results))
+    winners = {sc: scenario_winners(st) for sc, st in studies.items()}
+    info = {**environment_info(), **(meta or {})}
+    links = {sc: os.path.relpath(p, out) for sc, p in (reports or {}).items()}
+
+    payload = {
+        "profile": profile,
+        "system": s.name,
+        "scenarios": list(studies),
+        "runs": first.runs,
+        "steps": first.steps,
+        "seed": first.seed,
+        "states": list(s.state_names),
+        "units": list(s.state_units),
+        "studies": {
+            sc: {
+                "reference": st.reference,
+                "filters": {
+                    n: {k: getattr(r, k) for k in ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "repairs")}
+                    for n, r in st.results.items()
+                },
+            }
+            for sc, st in studies.items()
+        },
+        "winners": winners,
+        "reports": links,
+        **info,
+    }
+    (out / "results.json").write_text(json.dumps(payload, indent=2))
+    with (out / "results.csv").open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(
+            ["scenario", "filter", *(f"rmse_{n}" for n in s.state_names), *(f"ratio_{n}" for n in s.state_names)]
+            + ["cost_ms", "diverged"]
+        )
+        for sc, st in studies.items():
+            for n, r in st.results.items():
+                ratio = r.ratio_to_oracle or [None] * s.state_dim
+                writer.writerow([sc, n, *r.rmse, *ratio, r.cost_ms, r.diverged])
+    rmse = {sc: {n: r.rmse for n, r in st.results.items()} for sc, st in studies.items()}
+    figure = figures.plot_scenario_rmse(rmse, s.state_names, s.state_units, out / "rmse_by_scenario.png")
+
+    lines = [f"# {title}", ""]
+    if profile != "paper":
+        lines += [
+            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; "
+            "not the paper-size study.",
+            "",
+        ]
+    lines += [
+        f"System `{s.name}`, scenarios {', '.join(f'`{sc}`' for sc in studies)}; each {first.runs} runs × "
+        f"{first.steps} steps from evaluation seed {first.seed}, every filter on the same data within a scenario.",
+        "",
+        "## Summary: RMSE per state and scenario",
+        "",
+        "The lowest RMSE of each column is in bold; – : the filter was not run on that scenario.",
+        "",
+    ]
+    head = ["filter", *(f"{sc}: {n} [{u}]" for sc in studies for n, u in zip(s.state_names, s.state_units))]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name in names:
+        row = [name]
+        for sc, st in studies.items():
+            for j in range(s.state_dim):
+                r = st.results.get(name)
+                cell = f"{r.rmse[j]:.4g}" if r is not None else "–"
+                row.append(
+                    f"**{cell}**" if r is not None and winners[sc]["per_state"].get(s.state_names[j]) == name else cell
+                )
+        lines.append("| " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "## Which filter wins each scenario",
+        "",
+        "Lowest RMSE per state; overall: the lowest mean over states of RMSE / (best RMSE of that state), "
+        "with and without the PF-oracle (a reference, too costly to be a practical filter).",
+        "",
+        "| scenario | " + " | ".join(f"lowest RMSE {n}" for n in s.state_names) + " | overall | overall without "
+        "PF-oracle |",
+        "|---|" + "---|" * (s.state_dim + 2),
+    ]
+    for sc, w in winners.items():
+        cells = [w["per_state"][n] or "–" for n in s.state_names]
+        lines.append(
+            f"| {sc} | " + " | ".join(cells) + f" | {w['overall'] or '–'} | {w['overall_without_oracle'] or '–'} |"
+        )
+    lines.append("")
+    for sc, st in studies.items():
+        link = f" ([full report]({links[sc]}))" if sc in links else ""
+        lines += [f"## Scenario `{sc}`{link}", "", *_results_table(st), "", *_reference_lines(st)]
+    if notes:
+        lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
+    lines += ["## Figures", "", f"![RMSE per scenario]({figure.name})", ""]
     lines += [
         "## Provenance",
         "",

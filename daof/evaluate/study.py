@@ -2,7 +2,8 @@
 
 The data set is generated once from the evaluation seed and every filter sees exactly the same
 true states, measurements and controls. Each filter's result (metrics and estimates) is cached
-in ``cache_dir`` as soon as it is finished, so an interrupted study restarts where it stopped.
+in ``cache_dir`` as soon as it is finished (written atomically, so an interruption never leaves a
+half-written entry), so an interrupted study restarts where it stopped.
 With ``dropout`` (``daof.evaluate.dropout.Dropout``) the measurements of that data set get NaN
 gaps before any filter sees them; the cache keeps those results apart from the complete-data ones.
 """
@@ -21,6 +22,7 @@ from tensordict import TensorDict
 from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
+from daof.train.checkpoint import atomic_save
 from envs.system import StochasticSystem
 
 __all__ = ["FilterResult", "Study", "run_study"]
@@ -57,6 +59,9 @@ class Study:
     estimates: dict[str, torch.Tensor]
     #: ``Dropout.describe()`` plus the measured ``missing_fraction`` per channel; None: complete data
     dropout: dict | None = None
+    #: the filter every ``ratio_to_oracle`` is relative to (PF-oracle, or the KF on the linear system);
+    #: None when the study has no such filter
+    reference: str | None = None
 
     def to_json(self) -> dict:
         s = self.system
@@ -69,6 +74,7 @@ class Study:
             "seed": self.seed,
             "states": list(s.state_names),
             "units": list(s.state_units),
+            "reference": self.reference,
             **extra,
             "filters": {name: asdict(r) for name, r in self.results.items()},
         }
@@ -114,12 +120,15 @@ def run_study(
     log=print,
     dropout: Dropout | None = None,
     versions: dict[str, str] | None = None,
+    reference: str = ORACLE,
 ) -> Study:
     """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set.
 
     ``dropout``: filter the same simulated data with the measurement gaps it describes instead.
     ``versions``: per filter name, a string that identifies its weights (e.g. a checkpoint digest);
     it is part of the cache key, so a retrained filter is evaluated again instead of reused.
+    ``reference``: the filter the ratios and the diverged-run threshold are relative to (the
+    protocol's PF-oracle; the exact Kalman filter ``"KF"`` on the linear system).
     """
     data = system.simulate(runs, steps, seed)
     key = {"system": system.name, "scenario": system.scenario, "runs": runs, "steps": steps, "seed": seed}
@@ -138,12 +147,11 @@ def run_study(
     for i, (name, filt) in enumerate(filters.items(), 1):
         path = _cache_path(cache, name, key.get("dropout")) if cache is not None else None
         filter_key = {**key, "version": (versions or {}).get(name)}
-        if path is not None and path.is_file():
-            blob = torch.load(path, weights_only=False)
-            if blob["key"] == filter_key:
-                results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
-                log(f"[{i}/{len(filters)}] {name}: reused finished result ({path})")
-                continue
+        blob = _read_cache(path, log) if path is not None else None
+        if blob is not None and blob["key"] == filter_key:
+            results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
+            log(f"[{i}/{len(filters)}] {name}: reused finished result ({path})")
+            continue
         log(f"[{i}/{len(filters)}] {name}: filtering {runs} runs x {steps} steps ...")
         result, est = _evaluate_one(filt, data, timing_threads, measure_cost)
         results[name], estimates[name] = result, est
@@ -151,14 +159,27 @@ def run_study(
         cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"
         log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s")
         if path is not None:
-            torch.save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
-    _add_oracle_metrics(results)
-    return Study(system, runs, steps, seed, data, results, estimates, dropout=dropout_info)
+            atomic_save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
+    _add_oracle_metrics(results, reference)
+    ref = reference if reference in results else None
+    return Study(system, runs, steps, seed, data, results, estimates, dropout=dropout_info, reference=ref)
 
 
-def _add_oracle_metrics(results: dict[str, FilterResult]) -> None:
-    """Ratio to PF-oracle per state and diverged-run counts (10× the oracle's RMSE)."""
-    oracle = results.get(ORACLE)
+def _read_cache(path: Path, log) -> dict | None:
+    """A cached result, or None if there is none or it cannot be read (it is then computed again)."""
+    if not path.is_file():
+        return None
+    try:
+        blob = torch.load(path, weights_only=False)
+    except Exception as error:  # truncated or foreign file: torch / pickle raise many kinds
+        log(f"unreadable cache entry {path} ({type(error).__name__}); computing it again")
+        return None
+    return blob if isinstance(blob, dict) and {"key", "result", "estimates"} <= blob.keys() else None
+
+
+def _add_oracle_metrics(results: dict[str, FilterResult], reference: str = ORACLE) -> None:
+    """Ratio to the reference (PF-oracle) per state and diverged-run counts (10× its RMSE)."""
+    oracle = results.get(reference)
     oracle_rmse = torch.tensor(oracle.rmse, dtype=torch.float64) if oracle is not None else None
     for r in results.values():
         run_rmse = torch.tensor(r.per_run_rmse, dtype=torch.float64)

@@ -19,11 +19,16 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from daof.evaluate import run_study
-from daof.evaluate.experiment import checkpoint_fingerprint, learning_curves, select_profile, training_costs
-from daof.evaluate.jobs import TrainingJob, run_jobs
+from daof.evaluate.experiment import (
+    learning_curves,
+    run_trained_study,
+    select_profile,
+    select_scenarios,
+    train,
+    training_costs,
+)
+from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report
-from daof.filters.learned import load_filter
 from envs import make_system
 from envs.recorded import RecordedSystem
 
@@ -91,19 +96,15 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
     """Steps 2 and 3: the Monte Carlo study of the trained filters and the Table II report."""
     print("2/3 Monte Carlo study (model-free filters only)")
     system = RecordedSystem(make_system("veh14dof", cfg.scenario, **_system_overrides(p)), cache_dir=cfg.cache_dir)
-    expect = {"system": "veh14dof", "window": int(cfg.window)}
-    filters = {name: load_filter(jobs[name].output_dir / "best.pt", system, expect=expect) for name in NAMES}
-    # keyed by the checkpoints, so a retrained filter is never scored from a stale cache
-    versions = {name: checkpoint_fingerprint([jobs[name].output_dir / "best.pt"]) for name in NAMES}
-    study = run_study(
+    study, filters = run_trained_study(
         system,
-        filters,
-        int(p.runs),
-        int(p.steps),
-        int(cfg.seed),
-        int(cfg.timing_threads),
+        {name: jobs[name] for name in NAMES},
+        runs=int(p.runs),
+        steps=int(p.steps),
+        seed=int(cfg.seed),
+        timing_threads=int(cfg.timing_threads),
         cache_dir=Path(cfg.output_root) / "study",
-        versions=versions,
+        expect={"system": "veh14dof", "window": int(cfg.window)},
     )
 
     print("3/3 report")
@@ -124,11 +125,12 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
 @hydra.main(config_path=".", config_name="experiment", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     p = select_profile(cfg)
+    select_scenarios("veh14dof", cfg.scenario)
     start = time.perf_counter()
     print(f"Experiment II ({cfg.profile} profile, scenario {cfg.scenario}) -> {cfg.output_root}")
     print("1/3 training the learned filters")
     jobs = training_jobs(cfg, p, Path(cfg.output_root))
-    run_jobs(list(jobs.values()), parallel=int(cfg.parallel_jobs))
+    train(list(jobs.values()), parallel=int(cfg.parallel_jobs))
     report = study_and_report(cfg, p, jobs, start)
     print(f"report: {report}  ({(time.perf_counter() - start) / 60:.1f} min)")
 

@@ -1,0 +1,70 @@
+"""The optimality-check recipe (recipes/linear/experiment.py): DAOF against the Kalman filter.
+
+End to end at the tiny profile (the trainings as subprocesses, the study, the report), and its
+bad inputs: an unknown scenario or profile ends the script with one clear line before any training.
+"""
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "recipes" / "linear" / "experiment.py"
+
+
+def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_path):
+    cmd = [sys.executable, str(SCRIPT), "profile=tiny", f"output_root={tmp_path}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    report = tmp_path / "report"
+    for name in ("report.md", "results.csv", "results.json", "run0_states_errors.png", "learning_curves.png"):
+        assert (report / name).is_file(), name
+    results = json.loads((report / "results.json").read_text())
+    assert results["system"] == "linear" and results["runs"] == 3 and results["steps"] == 60
+    assert results["reference"] == "KF"
+    rows = results["filters"]
+    assert list(rows) == ["KF", "PF", "DAOF-v1", "DAOF-v2"]
+    for name, row in rows.items():
+        assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
+        # the ratio column is this filter's RMSE over the KF's, per state
+        expected = [a / b for a, b in zip(row["rmse"], rows["KF"]["rmse"])]
+        assert row["ratio_to_oracle"] == pytest.approx(expected, rel=1e-12), name
+        assert row["cost_ms"] > 0
+    assert rows["KF"]["ratio_to_oracle"] == [1.0, 1.0]
+    # the requirement is decided from the measured ratios and stated in the report
+    (check,) = results["requirements"]
+    met = all(r <= 1.05 for r in rows["DAOF-v1"]["ratio_to_oracle"])
+    assert check["requirement"] == "DAOF-v1 RMSE ≤ 1.05× KF per state" and check["met"] is met
+    text = (report / "report.md").read_text()
+    assert "ratio to KF (position / velocity)" in text
+    assert f"DAOF-v1 RMSE ≤ 1.05× KF per state: **{'met' if met else 'not met'}**." in text
+    ratio = rows["DAOF-v1"]["ratio_to_oracle"]
+    assert f"DAOF-v1 / KF over all steps: position {ratio[0]:.3f}, velocity {ratio[1]:.3f}" in text
+    with (report / "results.csv").open() as fh:
+        table = list(csv.DictReader(fh))
+    assert [r["filter"] for r in table] == list(rows) and float(table[0]["ratio_position"]) == 1.0
+    # the trainings are the Experiment I recipe with recipes/linear/config.yaml
+    assert set(results["training"]) == {"DAOF-v1", "DAOF-v2"}
+    assert results["training"]["DAOF-v1"]["frames"] >= 1200
+    assert f"report: {report / 'report.md'}" in done.stdout
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("scenario=mismatch", "unknown scenario 'mismatch' for linear; valid: ['nominal']"),
+        ("profile=huge", "unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"),
+    ],
+)
+def test_bad_scenario_or_profile_exits_with_one_line(tmp_path, override, message):
+    cmd = [sys.executable, str(SCRIPT), override, f"output_root={tmp_path}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode != 0
+    assert done.stderr.strip().splitlines() == [message], done.stderr
+    assert "Traceback" not in done.stdout + done.stderr
+    assert not list(tmp_path.glob("daof-*")), "nothing trains on a bad input"
