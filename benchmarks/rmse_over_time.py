@@ -5,7 +5,7 @@
 
 Data: the training runs' validation set (20 runs × 500 steps, seed 9100). References: the Kalman
 filter on ``linear``; UKF and a 1000-particle PF on ``veh2dof``. Columns: all steps, t ≥ --settled,
-t < --startup.
+t < --startup. ``--per-step 1,2,3`` adds a table of the RMSE at each of those steps t (over runs).
 """
 
 from __future__ import annotations
@@ -29,7 +29,11 @@ def main() -> None:
     parser.add_argument("--system", default="veh2dof", choices=["veh2dof", "linear"])
     parser.add_argument("--settled", type=int, default=50)
     parser.add_argument("--startup", type=int, default=20)
+    parser.add_argument("--per-step", default="", help="comma-separated steps t >= 1 for a per-step table")
     args = parser.parse_args()
+    per_step = [int(t) for t in args.per_step.split(",") if t.strip()]
+    if any(t < 1 or t > 500 for t in per_step):
+        parser.error("--per-step takes steps t in 1..500")
     torch.set_num_threads(1)
     system = make_system(args.system)
     data = system.simulate(20, 500, seed=9100)
@@ -39,9 +43,14 @@ def main() -> None:
         filters = {"UKF": UKF(system), "PF (1000)": ParticleFilter(system, 1000, seed=0)}
     filters.update({path: load_filter(path, system) for path in args.checkpoints})
     print(f"| filter | all steps | t ≥ {args.settled} | t < {args.startup} |\n|---|---|---|---|")
-    for name, filt in filters.items():
-        err = filt.run(data) - data["state"]
+    errors = {name: filt.run(data) - data["state"] for name, filt in filters.items()}
+    for name, err in errors.items():
         print(f"| {name} | {_rmse(err)} | {_rmse(err[:, args.settled :])} | {_rmse(err[:, : args.startup])} |")
+    if per_step:
+        print("\n| filter | " + " | ".join(f"t = {t}" for t in per_step) + " |")
+        print("|---|" + "---|" * len(per_step))
+        for name, err in errors.items():
+            print(f"| {name} | " + " | ".join(_rmse(err[:, t - 1 : t]) for t in per_step) + " |")
 
 
 if __name__ == "__main__":

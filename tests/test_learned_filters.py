@@ -14,7 +14,7 @@ from daof.filters.learned import (
     startup_feature,
 )
 from daof.train.schedules import ukf_schedule
-from envs import make_env
+from envs import make_env, make_system
 
 
 def small(kind, window=4, system="veh2dof"):
@@ -161,6 +161,13 @@ def test_checkpoint_errors(tmp_path):
     torch.save({"something": 1}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="not a learned-filter checkpoint"):
         load_filter(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="a filter for 'veh2dof', not for 'linear'"):
+        load_filter(tmp_path / "f.pt", make_system("linear"))
+    blob = torch.load(tmp_path / "f.pt", weights_only=False)
+    blob["state_dict"]["policy.mlp.0.weight"] = blob["state_dict"]["policy.mlp.0.weight"][:, :-1]  # an older layout
+    torch.save(blob, tmp_path / "old.pt")
+    with pytest.raises(ValueError, match="does not fit this filter's layout"):
+        load_filter(tmp_path / "old.pt")
 
 
 def test_bad_config():

@@ -364,15 +364,7 @@ def write_report(
     if notes:
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
-    lines += [
-        "## Provenance",
-        "",
-        f"- commit: `{info['commit']}`",
-        f"- machine: {info['machine']}",
-        f"- versions: {', '.join(f'{k} {v}' for k, v in info['versions'].items())}",
-        *[f"- {k}: {v}" for k, v in (meta or {}).items()],
-        "",
-    ]
+    lines += _provenance_lines(info, meta)
     (out / "report.md").write_text("\n".join(lines))
     return out / "report.md"
 
@@ -516,7 +508,14 @@ def write_scenario_report(
     if notes:
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     lines += ["## Figures", "", f"![RMSE per scenario]({figure.name})", ""]
-    lines += [
+    lines += _provenance_lines(info, meta)
+    (out / "report.md").write_text("\n".join(lines))
+    return out / "report.md"
+
+
+def _provenance_lines(info: dict, meta: dict | None) -> list[str]:
+    """The report's provenance section: commit, machine, versions and the run's own metadata."""
+    return [
         "## Provenance",
         "",
         f"- commit: `{info['commit']}`",
@@ -525,5 +524,3 @@ def write_scenario_report(
         *[f"- {k}: {v}" for k, v in (meta or {}).items()],
         "",
     ]
-    (out / "report.md").write_text("\n".join(lines))
-    return out / "report.md"

@@ -467,7 +467,13 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
     for key, value in (expect or {}).items():
         if getattr(config, key) != value:
             raise ValueError(f"checkpoint {path} has {key}={getattr(config, key)!r}, expected {value!r}")
+    if system is not None and system.name != config.system:
+        raise ValueError(f"checkpoint {path} is a filter for {config.system!r}, not for {system.name!r}")
     module = LearnedFilter(config, system)
-    module.load_state_dict(blob["state_dict"])
+    try:
+        module.load_state_dict(blob["state_dict"])
+    except RuntimeError as error:  # saved by another version of the filter (other inputs or sizes)
+        first = str(error).strip().splitlines()[-1].strip()
+        raise ValueError(f"checkpoint {path} does not fit this filter's layout ({first})") from None
     module.extra = blob.get("extra", {})
     return module.eval()
