@@ -130,7 +130,7 @@ class Vehicle2DOF(StochasticSystem):
         slip = x M − δ e₁, F = −μ F_z sin(C atan(lerp(Bα, atan(Bα), E))) per axle,
         F_c = F ⊙ cos(δ e₁) (only the front force turns with the wheel), x' = x K + F_c D.
         """
-        M, e1, neg_e1, muFz, K, D = self._f_constants(x)
+        M, e1, neg_e1, muFz, K, D, _, _ = self._f_constants(x)
         delta = u[..., :1]
         Ba = torch.addcmul(x @ M, delta, neg_e1) * self.p.B
         Fy = torch.sin(self.p.C * torch.atan(torch.lerp(Ba, torch.atan(Ba), self.p.E))) * muFz
@@ -148,12 +148,19 @@ class Vehicle2DOF(StochasticSystem):
                 [-p.mu * self.Fzf, -p.mu * self.Fzr],
                 [[1.0, 0.0], [-dt, 1.0]],
                 [[dt / (p.m * p.vx), dt * p.lf / p.Iz], [dt / (p.m * p.vx), -dt * p.lr / p.Iz]],
+                [[1.0 / p.m, 0.0], [1.0 / p.m, 0.0]],  # g: a_y = (F_yf cos δ + F_yr)/m
+                [[0.0, 0.0], [0.0, 1.0]],  # g: the yaw rate is measured as it is
             ]
             self._f_cache[key] = tuple(torch.as_tensor(v, dtype=torch.float64).to(x) for v in c)
         return self._f_cache[key]
 
     def g(self, x, u):
-        return torch.stack([self.lateral_acceleration(x, u), x[..., 1]], -1)
+        """Nominal measurement [a_y(x, u), r], in the same 15 ops as ``f`` (DAOF-v1 calls it every step)."""
+        M, e1, neg_e1, muFz, _, _, G, J = self._f_constants(x)
+        delta = u[..., :1]
+        Ba = torch.addcmul(x @ M, delta, neg_e1) * self.p.B
+        Fy = torch.sin(self.p.C * torch.atan(torch.lerp(Ba, torch.atan(Ba), self.p.E))) * muFz
+        return x @ J + (Fy * torch.cos(delta * e1)) @ G
 
     # ----------------------------------------------------------------- episodes
     def sample_params(self, runs, generator, device):

@@ -400,8 +400,9 @@ class LearnedFilter(nn.Module, Filter):
         if w_nu is not None:
             nu = self.innovation(window, prediction) / schedule_row(self.policy.innovation_scale, step)
             b0 = b0 + nu @ w_nu.T
-        if w_rho is not None and step is not None:
-            b0 = b0 + startup_feature(step) * w_rho
+        rho = startup_feature(step) if w_rho is not None and step is not None else 0.0
+        if not isinstance(rho, float) or rho > 0.0:  # a settled streaming step skips it (+0 is exact)
+            b0 = b0 + rho * w_rho
         h = nn.functional.gelu(nn.functional.linear(window, w0, b0))
         for weight, bias in hidden:
             h = nn.functional.gelu(nn.functional.linear(h, weight, bias))
