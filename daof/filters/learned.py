@@ -88,9 +88,10 @@ def schedule_row(table: torch.Tensor, step) -> torch.Tensor:
 def startup_feature(step) -> torch.Tensor:
     """ρ_t = max(0, 1 − (t − 1)/SCHEDULE_STEPS) for t ≥ 1 ([..., 1] integer tensor -> float [..., 1]).
 
-    1 at the first measurement, 0 once the filter has settled (an int t gives a float). After a reset the window is N
-    copies of the first frame and, past t = N, says nothing of t; the start-up (where the prior's
-    error is pulled in) needs different updates than the settled filter, so the networks read ρ_t.
+    1 at the first measurement, 0 once the filter has settled (an int t gives a float). After a
+    reset the window is N copies of the first frame and, past t = N, says nothing of t; the
+    start-up (where the prior's error is pulled in) needs other updates than the settled filter,
+    so the networks read ρ_t.
     """
     if isinstance(step, int):  # the streaming filter's hot path
         return min(max(1.0 - (step - 1) / SCHEDULE_STEPS, 0.0), 1.0)
