@@ -128,8 +128,10 @@ def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
 
 def test_startup_schedules_of_a_dsac_run(tmp_path):
     """reward.weights=kalman: W_t rises from below W to W (non-decreasing) and the env uses it; v1's
-    bound is fitted from the same UKF; constant weights and the process bound switch both off."""
-    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "k", version="v1"))
+    kalman bound and innovation scale come from the same UKF; constant weights and the process
+    bound (the veh2dof default) switch the weights and the bound off."""
+    kalman = {"network.correction_bound": "kalman"}
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "k", version="v1", **kalman))
     system = trainer.system
     w = 1.0 / (system.state_dim * system.error_scale**2)
     schedule = trainer.reward_weights
