@@ -286,13 +286,7 @@ def write_report(
     if window_rows:
         figs["window study"] = figures.plot_window_study(window_rows, s.state_names, out / "window_study.png")
 
-    lines = [f"# {title}", ""]
-    if profile != "paper":
-        lines += [
-            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; "
-            "not the paper-size study.",
-            "",
-        ]
+    lines = _header_lines(title, profile)
     lines += [
         f"System `{s.name}`, scenario `{s.scenario}`; {study.runs} runs × {study.steps} steps, evaluation seed "
         f"{study.seed} (disjoint from every training and validation seed). Every filter filters the same data "
@@ -457,13 +451,7 @@ def write_scenario_report(
     rmse = {sc: {n: r.rmse for n, r in st.results.items()} for sc, st in studies.items()}
     figure = figures.plot_scenario_rmse(rmse, s.state_names, s.state_units, out / "rmse_by_scenario.png")
 
-    lines = [f"# {title}", ""]
-    if profile != "paper":
-        lines += [
-            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; "
-            "not the paper-size study.",
-            "",
-        ]
+    lines = _header_lines(title, profile)
     lines += [
         f"System `{s.name}`, scenarios {', '.join(f'`{sc}`' for sc in studies)}; each {first.runs} runs × "
         f"{first.steps} steps from evaluation seed {first.seed}, every filter on the same data within a scenario.",
@@ -511,6 +499,18 @@ def write_scenario_report(
     lines += _provenance_lines(info, meta)
     (out / "report.md").write_text("\n".join(lines))
     return out / "report.md"
+
+
+def _header_lines(title: str, profile: str) -> list[str]:
+    """The report's title, and a banner on any profile smaller than the paper's."""
+    lines = [f"# {title}", ""]
+    if profile != "paper":
+        lines += [
+            f"> **Profile `{profile}`**: reduced runs and training budgets for a quick check; "
+            "not the paper-size study.",
+            "",
+        ]
+    return lines
 
 
 def _provenance_lines(info: dict, meta: dict | None) -> list[str]:
