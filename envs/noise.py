@@ -210,7 +210,10 @@ class LaplaceNoise(Noise):
 
     def sample(self, shape=(), generator=None):
         # Inverse CDF: b * sign(v) * -log(1 - 2|v|), v ~ U(-1/2, 1/2).
-        v = torch.rand(self._shape(shape), generator=generator, device=self._device()) - 0.5
+        # torch.rand can return exactly 0 (p = 2^-24 per draw in float32), and v = -1/2 gives -inf:
+        # the smallest non-zero draw takes its place, so every other sample is unchanged.
+        u = torch.rand(self._shape(shape), generator=generator, device=self._device())
+        v = u.clamp_min(torch.finfo(u.dtype).eps / 2) - 0.5
         return self.loc - self.b * v.sign() * torch.log1p(-2 * v.abs())
 
     def channel_log_prob(self, value):

@@ -110,6 +110,18 @@ def test_laplace_log_prob_matches_torch_distributions():
     assert float(noise.log_prob(x[1])) == pytest.approx(hand, rel=1e-6)
 
 
+def test_laplace_sample_is_finite_when_the_uniform_draw_is_zero(monkeypatch):
+    """torch.rand returns exactly 0 once in 2^24 draws; the inverse CDF must not give -inf there.
+
+    (A 1.6M-frame training run hit it: an infinite measurement, then a NaN estimate.)
+    """
+    monkeypatch.setattr(torch, "rand", lambda shape, **kw: torch.zeros(shape))
+    assert torch.isfinite(OutlierLaplaceNoise(B_ZETA).sample(4)).all()
+    x = LaplaceNoise(B_ZETA).sample(4)
+    # the smallest non-zero float32 draw, 2^-24, takes its place: x = -b·log(2^23)
+    torch.testing.assert_close(x, (-23 * math.log(2) * B_ZETA).expand(4, -1))
+
+
 # ----------------------------------------------------------------------------- Laplace + outliers
 def test_outlier_covariance_and_samples():
     p, k = 0.05, 10.0
