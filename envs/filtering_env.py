@@ -177,15 +177,17 @@ def make_env(
     max_steps: int = 500,
     include_controls: bool = True,
     reward_weights=None,
+    padding: str = "same",
     **overrides,
 ):
     """The filtering env of system ``name`` with its history window (a ``TransformedEnv``).
 
-    ``overrides`` go to ``make_system`` (system parameters).
+    ``padding`` fills the window in front of the first frame (``envs.history``); ``overrides`` go
+    to ``make_system`` (system parameters).
     """
     from envs.history import with_window
     from envs.registry import make_system
 
     system = make_system(name, scenario, **overrides)
     env = FilteringEnv(system, batch_size, max_steps, reward_weights, seed, device)
-    return with_window(env, window, include_controls and system.control_dim > 0)
+    return with_window(env, window, include_controls and system.control_dim > 0, padding)

@@ -5,9 +5,11 @@ pairs, each optionally followed by the controls (u_t, u_{t−1}). It is TorchRL'
 ``CatTensors`` (one frame per step, keys in the order given) followed by ``CatFrames`` (the last
 N frames, oldest first, along the last dim).
 
-Reset padding: right after a reset the window is filled with N copies of the first frame
-(``padding="same"``), i.e. the prior mean and the first measurement; partial resets pad only the
-runs that were reset. The env stores the window once per step (``history`` and its ``next``
+Reset padding: right after a reset the window holds the first frame (the prior mean and the
+first measurement) and N − 1 padding frames in front of it: copies of that frame (``"same"``,
+the default) or zeros (``"zeros"``; for zero-mean channels zeros are the training mean, i.e.
+frames that carry no measurement, while N copies look like N measurements that agree). Partial
+resets pad only the runs that were reset. The env stores the window once per step (``history`` and its ``next``
 twin, as every TorchRL observation), so a replay buffer needs no frame-stacking transform of its
 own and must not be given one.
 """
@@ -16,10 +18,12 @@ from __future__ import annotations
 
 from torchrl.envs import CatFrames, CatTensors, Compose, TransformedEnv
 
-__all__ = ["FRAME_KEY", "HISTORY_KEY", "frame_keys", "history_dim", "window_transform", "with_window"]
+__all__ = ["FRAME_KEY", "HISTORY_KEY", "PADDINGS", "frame_keys", "history_dim", "window_transform", "with_window"]
 
 HISTORY_KEY = "history"
 FRAME_KEY = "frame"
+#: how the window is filled in front of the first frame after a reset
+PADDINGS = ("same", "zeros")
 
 
 def frame_keys(include_controls: bool) -> list[str]:
@@ -30,13 +34,16 @@ def frame_keys(include_controls: bool) -> list[str]:
     return keys
 
 
-def window_transform(window: int, include_controls: bool = True) -> Compose:
+def window_transform(window: int, include_controls: bool = True, padding: str = "same") -> Compose:
     """Transforms that add ``frame`` and the N-step window ``history`` to an env's output."""
     if not isinstance(window, int) or window < 1:
         raise ValueError(f"window must be an integer N >= 1, got {window!r}")
+    if padding not in PADDINGS:
+        raise ValueError(f"window padding must be one of {PADDINGS}, got {padding!r}")
+    pad = {"padding": "same"} if padding == "same" else {"padding": "constant", "padding_value": 0.0}
     return Compose(
         CatTensors(frame_keys(include_controls), out_key=FRAME_KEY, del_keys=False, sort=False),
-        CatFrames(N=window, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], padding="same"),
+        CatFrames(N=window, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], **pad),
     )
 
 
@@ -46,6 +53,6 @@ def history_dim(system, window: int, include_controls: bool = True) -> int:
     return window * frame
 
 
-def with_window(env, window: int, include_controls: bool = True) -> TransformedEnv:
+def with_window(env, window: int, include_controls: bool = True, padding: str = "same") -> TransformedEnv:
     """Wrap ``env`` so that its observations carry the history window."""
-    return TransformedEnv(env, window_transform(window, include_controls))
+    return TransformedEnv(env, window_transform(window, include_controls, padding))

@@ -17,21 +17,31 @@ from daof.train.schedules import ukf_schedule
 from envs import make_env, make_system
 
 
-def small(kind, window=4, system="veh2dof"):
-    f = LearnedFilter(FilterConfig(kind=kind, system=system, window=window, num_cells=16))
+def small(kind, window=4, system="veh2dof", **config):
+    f = LearnedFilter(FilterConfig(kind=kind, system=system, window=window, num_cells=16, **config))
     f.fit_normalizer(runs=4, steps=50)
     return f.eval()
 
 
+@pytest.mark.parametrize("padding", ["same", "zeros"])
 @pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2"])
-def test_offline_run_equals_env_rollout(kind):
-    """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed."""
-    f = small(kind)
-    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=30)
+def test_offline_run_equals_env_rollout(kind, padding):
+    """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed.
+
+    The rollout runs 2 episodes of 15 steps, so the window is padded after a reset too."""
+    f = small(kind, window_padding=padding)
+    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15, padding=padding)
     with torch.no_grad():
         rollout = env.rollout(30, f.filter_module(), break_when_any_done=False)
-    offline = f.run(f.system.simulate(3, 30, seed=11))
-    torch.testing.assert_close(offline, rollout["action"], rtol=0, atol=0)
+    first = rollout["history"][:, 0].reshape(3, 4, -1)
+    if padding == "zeros":
+        assert (first[:, :3] == 0).all() and (first[:, 3] != 0).any()
+    else:
+        assert (first == first[:, -1:]).all()
+    data = f.system.simulate(3, 15, seed=11)
+    torch.testing.assert_close(f.run(data), rollout["action"][:, :15], rtol=0, atol=0)
+    second = rollout["history"][:, 15].reshape(3, 4, -1)
+    assert ((second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all())
 
 
 def test_exploration_policy_deterministic_mode_is_the_filter():

@@ -25,7 +25,7 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from daof.filters.base import Filter
-from envs.history import HISTORY_KEY
+from envs.history import HISTORY_KEY, PADDINGS
 from envs.registry import make_system
 from envs.system import StochasticSystem
 
@@ -63,12 +63,23 @@ class FilterConfig:
     #: a UKF's innovation std √diag S_t at step t: then the optimal unit action ≈ ν_t/√S_t / k at
     #: every step, start-up included (a Kalman update is K_t ν_t and b_t ∝ std of K_t ν_t)
     innovation_input: bool = True
+    #: the policy's GELU: "tanh" (its tanh approximation) or "none" (exact, erf). Same function to
+    #: ~1e-3; the exact one costs ~5x more at batch 1 on CPU (3 of them per estimate), see
+    #: docs/benchmarks.md. Checkpoints saved before the field existed are exact.
+    gelu_approximate: str = "tanh"
+    #: closed-loop filters: what fills the window in front of the first frame after a reset,
+    #: "same" (copies of it) or "zeros" (``envs.history``)
+    window_padding: str = "same"
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"unknown filter kind {self.kind!r}; valid: {sorted(KINDS)}")
         if not isinstance(self.window, int) or self.window < 1:
             raise ValueError(f"window must be an integer N >= 1, got {self.window!r}")
+        if self.window_padding not in PADDINGS:
+            raise ValueError(f"window_padding must be one of {PADDINGS}, got {self.window_padding!r}")
+        if self.gelu_approximate not in ("tanh", "none"):
+            raise ValueError(f"gelu_approximate must be 'tanh' or 'none', got {self.gelu_approximate!r}")
         if self.correction_bound not in CORRECTION_BOUNDS:
             raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
 
@@ -117,6 +128,7 @@ class PolicyNet(nn.Module):
         startup_input: bool = False,
         innovation=None,
         innovation_dim: int = 0,
+        gelu_approximate: str = "none",
     ):
         super().__init__()
         self.register_buffer("input_loc", torch.zeros(in_features))
@@ -127,12 +139,14 @@ class PolicyNet(nn.Module):
         self.startup_input = startup_input
         #: width of ``features``: the MLP's input
         self.feature_dim = in_features + self.innovation_dim + int(startup_input)
+        self.gelu_approximate = gelu_approximate
         self.mlp = MLP(
             in_features=self.feature_dim,
             out_features=2 * out_dim,
             depth=depth,
             num_cells=num_cells,
             activation_class=nn.GELU,
+            activation_kwargs={"approximate": gelu_approximate},
         )
 
     def normalize(self, window: torch.Tensor) -> torch.Tensor:
@@ -204,6 +218,7 @@ class LearnedFilter(nn.Module, Filter):
             self.startup_input,
             self.innovation if self.innovation_input else None,
             s.measurement_dim,
+            config.gelu_approximate,
         )
         if config.kind == "DAOF-v1":
             # the actor's action is the update in units of its bound b_t; b_t starts as the
@@ -376,7 +391,8 @@ class LearnedFilter(nn.Module, Filter):
         """The policy's (weight, bias) per layer, for the deterministic filter only.
 
         The input normalisation is folded into the first layer and only the loc rows of the last
-        are kept, so one filter step costs four ``linear`` calls and three GELUs. The first entry
+        are kept (with the squash onto the action bounds, None for DAOF-v1's ±1), so one filter
+        step costs four ``linear`` calls and three GELUs. The first entry
         also holds the weight columns of ν_t and of ρ_t (each None where unused); they enter as a
         per-step bias. Rebuilt on every ``run`` (cheap), so it always
         matches the current weights.
@@ -390,7 +406,9 @@ class LearnedFilter(nn.Module, Filter):
         w_rho = first.weight[:, width + m] if self.startup_input else None
         layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
-        return layers + [(last.weight[:n], last.bias[:n])]
+        # a = mid + half · tanh(u) maps onto the action's bounds; DAOF-v1's are ±1 (a = tanh(u))
+        squash = None if self.config.kind == "DAOF-v1" else ((self.high + self.low) / 2, (self.high - self.low) / 2)
+        return layers + [(last.weight[:n], last.bias[:n], squash)]
 
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
@@ -404,11 +422,14 @@ class LearnedFilter(nn.Module, Filter):
         rho = startup_feature(step) if w_rho is not None and step is not None else 0.0
         if not isinstance(rho, float) or rho > 0.0:  # a settled streaming step skips it (+0 is exact)
             b0 = b0 + rho * w_rho
-        h = nn.functional.gelu(nn.functional.linear(window, w0, b0))
+        gelu = self.policy.gelu_approximate
+        h = nn.functional.gelu(nn.functional.linear(window, w0, b0), approximate=gelu)
         for weight, bias in hidden:
-            h = nn.functional.gelu(nn.functional.linear(h, weight, bias))
-        u = nn.functional.linear(h, *layers[-1])  # the pre-squash loc; a = (hi−lo)/2 · tanh(u) + (hi+lo)/2
-        out = torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(u))
+            h = nn.functional.gelu(nn.functional.linear(h, weight, bias), approximate=gelu)
+        weight, bias, squash = layers[-1]
+        out = torch.tanh(nn.functional.linear(h, weight, bias))  # tanh of the pre-squash loc
+        if squash is not None:
+            out = torch.addcmul(squash[0], squash[1], out)
         if v1:
             out = self._add_prediction(out, prev_estimate, prev_control, step, prediction)
         return out
@@ -417,9 +438,9 @@ class LearnedFilter(nn.Module, Filter):
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Filter [runs, steps] data -> [runs, steps, n] (``Filter.run`` validates the input).
 
-        Closed-loop filters build the window exactly as the env's CatTensors + CatFrames do (N
-        copies of the first frame after the reset), so ``run`` and an env rollout give the same
-        estimates; the open-loop SLF filters every step at once.
+        Closed-loop filters build the window exactly as the env's CatTensors + CatFrames do (the
+        first frame behind the configured padding after the reset), so ``run`` and an env rollout
+        give the same estimates; the open-loop SLF filters every step at once.
         """
         if not self.closed_loop:
             return self.estimate(sliding_windows(self.open_loop_frames(y, u, u_prev), self.config.window))
@@ -433,15 +454,22 @@ class LearnedFilter(nn.Module, Filter):
         measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]
         prev = s.prior.mean.to(y.device).expand(runs, -1).clone()
         width = self.frame_dim
-        out = torch.empty(runs, steps, s.state_dim, device=y.device)
+        out = []
         window = None
         for t in range(steps):
             frame = torch.cat([prev, measured[:, t]], -1) if self.closed_loop else measured[:, t]
-            # slide the window by one frame; right after the reset it is N copies of frame 1
-            window = frame.repeat(1, N) if window is None else torch.cat([window[:, width:], frame], -1)
+            # slide the window by one frame; right after the reset it is frame 1 behind N − 1 pads
+            window = self._first_window(frame) if window is None else torch.cat([window[:, width:], frame], -1)
             prev = self._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)
-            out[:, t] = prev
-        return out
+            out.append(prev)
+        return torch.stack(out, 1) if out else torch.empty(runs, 0, s.state_dim, device=y.device)
+
+    def _first_window(self, frame: torch.Tensor) -> torch.Tensor:
+        """h_1: the first frame behind N − 1 padding frames, as the env's ``CatFrames`` pads it."""
+        N = self.config.window
+        if self.config.window_padding == "zeros" and self.closed_loop:
+            return torch.cat([frame.new_zeros(frame.shape[0], (N - 1) * frame.shape[-1]), frame], -1)
+        return frame.repeat(1, N)
 
     def run_streaming(self, data) -> torch.Tensor:
         """``run`` one step at a time, as a deployed filter would (the SLF's cost is timed this way)."""
@@ -465,7 +493,7 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
     blob = torch.load(path, map_location="cpu", weights_only=False)
     if not isinstance(blob, dict) or "config" not in blob:
         raise ValueError(f"{path} is not a learned-filter checkpoint")
-    config = FilterConfig(**blob["config"])
+    config = FilterConfig(**{"gelu_approximate": "none", **blob["config"]})  # older checkpoints: exact GELU
     for key, value in (expect or {}).items():
         if getattr(config, key) != value:
             raise ValueError(f"checkpoint {path} has {key}={getattr(config, key)!r}, expected {value!r}")

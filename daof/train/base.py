@@ -54,6 +54,7 @@ class FilterTrainer:
                 correction_bound=str(net.get("correction_bound", "kalman")),
                 startup_input=bool(net.get("startup_input", True)),
                 innovation_input=bool(net.get("innovation_input", True)),
+                window_padding=str(net.get("window_padding", "same")),
             ),
             self.system,
         )

@@ -25,7 +25,9 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
+from daof.filters.learned import startup_feature
 from daof.train.base import FilterTrainer
+from daof.train.sampling import WeightedSampler
 from daof.train.networks import make_critic
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
@@ -36,6 +38,7 @@ __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
 _DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale"]
+_PRIORITY_KEY = "sample_priority"
 _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll")
 
 
@@ -122,9 +125,20 @@ class DSACTTrainer(FilterTrainer):
             self.system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )
         self.base_env = env
-        self.env = with_window(env, int(cfg.window), self.filter.uses_controls)
+        self.env = with_window(env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding)
+        size = int(cfg.buffer.size)
+        self.startup_priority = float(cfg.buffer.get("startup_priority", 0.0))
+        if self.startup_priority < 0:
+            raise ValueError(f"buffer.startup_priority must be >= 0, got {self.startup_priority}")
+        # start-up transitions are few (1 step in T is t = 1) and need other updates than the settled
+        # filter: k > 0 samples step t with weight 1 + k·ρ_t² (γ = 0 makes this a re-weighting of
+        # the states the filter is fitted on, so no importance correction)
+        sampler = WeightedSampler(size) if self.startup_priority > 0 else None
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(cfg.buffer.size)), batch_size=int(cfg.optim.batch_size)
+            storage=LazyTensorStorage(size),
+            sampler=sampler,
+            priority_key=_PRIORITY_KEY,
+            batch_size=int(cfg.optim.batch_size),
         )
 
     def _make_collector(self, remaining: int) -> Collector:
@@ -213,6 +227,8 @@ class DSACTTrainer(FilterTrainer):
                     break
                 with timeit("collect"):
                     batch = batch.reshape(-1).exclude(*_DROP_KEYS)
+                    if self.startup_priority > 0:
+                        batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * startup_feature(batch["step"]).squeeze(-1) ** 2
                     self.buffer.extend(batch)
                     self.frames += batch.numel()
                 metrics = {}
