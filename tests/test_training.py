@@ -163,3 +163,19 @@ def test_learning_rates_follow_a_cosine_to_the_final_fraction(tmp_path):
     constant = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "c", **{"optim.lr_final": 1.0}))
     constant.frames = 700
     assert constant.set_learning_rates() == pytest.approx(1.0)
+
+
+def test_shared_reward_weights_keep_the_settled_ratio_between_states():
+    """kalman_shared: one factor per step (the settled over the step's expected reward), so W_t ∝ W."""
+    from daof.train.schedules import reward_weight_schedule
+    from envs import make_system
+
+    system = make_system("veh2dof")
+    w = 1.0 / (system.state_dim * system.error_scale**2)
+    std = torch.tensor([[4.0, 2.0], [2.0, 1.0], [1.0, 1.0], [1.0, 1.0]]) * system.error_scale
+    shared = reward_weight_schedule(system, std, shared=True)
+    # settled: [1, 1]·s → expected reward Σ w s² = 1; at t = 1: Σ w (k s)² = (16 + 4)/2 = 10
+    torch.testing.assert_close(shared[:, 0] / w[0], torch.tensor([0.1, 0.4, 1.0, 1.0]))
+    torch.testing.assert_close(shared / w, (shared[:, :1] / w[0]).expand(-1, 2))
+    per_state = reward_weight_schedule(system, std)
+    torch.testing.assert_close(per_state[0] / w, torch.tensor([1 / 16, 1 / 4]))

@@ -67,14 +67,15 @@ class DSACTTrainer(FilterTrainer):
         cfg = self.cfg
         self.reward_weights = None
         mode = cfg.get("reward", {}).get("weights", "kalman")
-        if mode not in ("kalman", "constant"):
-            raise ValueError(f"reward.weights must be 'kalman' or 'constant', got {mode!r}")
-        if not self.system.has_model or not (self.filter.config.kind == "DAOF-v1" or mode == "kalman"):
+        if mode not in ("kalman", "kalman_shared", "constant"):
+            raise ValueError(f"reward.weights must be 'kalman', 'kalman_shared' or 'constant', got {mode!r}")
+        if not self.system.has_model or not (self.filter.config.kind == "DAOF-v1" or mode != "constant"):
             return
         schedule = ukf_schedule(self.system, seed=int(cfg.seeds.normalizer) + 1)
         self.filter.set_schedules(schedule)
-        if mode == "kalman":
-            self.reward_weights = reward_weight_schedule(self.system, schedule["estimate"])
+        if mode != "constant":
+            shared = mode == "kalman_shared"
+            self.reward_weights = reward_weight_schedule(self.system, schedule["estimate"], shared)
 
     def _make_loss(self) -> None:
         cfg = self.cfg
