@@ -36,6 +36,7 @@ def critic_surrogate(
     y_b: Tensor,
     sigma_bar: Tensor,
     epsilon: float,
+    mean_weighting: str = "variance",
 ) -> Tensor:
     """The DSAC-T critic surrogate L_i (spec, step 5), averaged over the batch (last dim).
 
@@ -43,9 +44,17 @@ def critic_surrogate(
     y_b in the std term, both scaled by (σ̄² + ε):
     ∂L/∂μ = −(σ̄²+ε)(y_q − μ̂)/(σ̂²+ε),  ∂L/∂σ = −(σ̄²+ε)((μ̂ − y_b)² − σ̂²)/(σ̂³+ε)  (per sample / B).
     Only ``mu`` and ``sigma`` carry gradient; ``sigma_bar`` broadcasts against the leading dims.
+
+    ``mean_weighting="uniform"`` drops the per-sample 1/(σ̂² + ε) of the mean term, so ∂L/∂μ =
+    −(y_q − μ̂): least squares, as β-NLL with β = 1 (Seitzer et al., ICLR 2022). With the Gaussian
+    NLL weighting a sample with a large predicted σ moves the mean little, and a quadratic reward's
+    costly actions are exactly the high-variance ones, so a fit of limited capacity flattens them.
     """
     mu_hat, sigma_hat = mu.detach(), sigma.detach()
-    grad_mu = -(y_q - mu_hat) / (sigma_hat.pow(2) + epsilon)
+    if mean_weighting == "uniform":
+        grad_mu = -(y_q - mu_hat) / (sigma_bar.pow(2) + epsilon).reshape(-1, *[1] * (mu.ndim - 1))
+    else:
+        grad_mu = -(y_q - mu_hat) / (sigma_hat.pow(2) + epsilon)
     grad_sigma = -((mu_hat - y_b).pow(2) - sigma_hat.pow(2)) / (sigma_hat.pow(3) + epsilon)
     return (sigma_bar.pow(2) + epsilon) * (grad_mu * mu + grad_sigma * sigma).mean(-1)
 
@@ -75,6 +84,8 @@ class DSACTLoss(LossModule):
         epsilon: ε in the surrogate's denominators and its (σ̄² + ε) scale.
         tau_b: rate of the moving average σ̄.
         sample_clip: the N(0, 1) draw for z′ is clamped to ±sample_clip before scaling by σ′.
+        mean_weighting: "variance" (DSAC-T: each sample's mean term weighted by 1/(σ̂² + ε)) or
+            "uniform" (least squares on the mean; see ``critic_surrogate``).
         delay_actor, delay_qvalue: keep target copies of actor / critics (update them with
             :class:`~torchrl.objectives.SoftUpdate`).
 
@@ -120,6 +131,7 @@ class DSACTLoss(LossModule):
         epsilon: float = 0.1,
         tau_b: float = 0.005,
         sample_clip: float = 3.0,
+        mean_weighting: str = "variance",
         delay_actor: bool = True,
         delay_qvalue: bool = True,
     ) -> None:
@@ -132,6 +144,9 @@ class DSACTLoss(LossModule):
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
         self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=delay_qvalue)
         self.xi, self.epsilon, self.tau_b, self.sample_clip = xi, epsilon, tau_b, sample_clip
+        if mean_weighting not in ("variance", "uniform"):
+            raise ValueError(f"mean_weighting must be 'variance' or 'uniform', got {mean_weighting!r}")
+        self.mean_weighting = mean_weighting
         device = next(iter(self.actor_network_params.values(True, True))).device
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(alpha_init), device=device))
         # σ̄_i, one per critic, and whether it has been set from a first batch: buffers, so they
@@ -327,7 +342,7 @@ class DSACTLoss(LossModule):
         sb = sigma_bar.reshape(-1, *[1] * (mu.ndim - 1))
         y_b = clip_sampled_target(y_z, mu, sb, self.xi)
         flat = (mu.flatten(1), sigma.flatten(1), y_q.flatten().expand_as(mu.flatten(1)), y_b.flatten(1))
-        loss = critic_surrogate(*flat, sigma_bar, self.epsilon).sum()
+        loss = critic_surrogate(*flat, sigma_bar, self.epsilon, self.mean_weighting).sum()
         with torch.no_grad():
             err = y_q - mu
             nll = 0.5 * math.log(2 * math.pi) + sigma.log() + err.pow(2) / (2 * sigma.pow(2))

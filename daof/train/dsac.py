@@ -86,6 +86,7 @@ class DSACTTrainer(FilterTrainer):
             num_qvalue_nets=2,
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
+            mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
         )
         self.loss.set_keys(action=self.filter.action_key)
         self.loss.make_value_estimator(gamma=float(cfg.loss.gamma))
