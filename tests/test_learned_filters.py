@@ -41,7 +41,7 @@ def test_offline_run_equals_env_rollout(kind, padding):
     data = f.system.simulate(3, 15, seed=11)
     torch.testing.assert_close(f.run(data), rollout["action"][:, :15], rtol=0, atol=0)
     second = rollout["history"][:, 15].reshape(3, 4, -1)
-    assert ((second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all())
+    assert (second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all()
 
 
 def test_exploration_policy_deterministic_mode_is_the_filter():

@@ -3,12 +3,12 @@
 import pytest
 import torch
 from tensordict import TensorDict
+from test_training import tiny_cfg
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from daof.filters.learned import startup_feature
 from daof.train.dsac import DSACTTrainer
 from daof.train.sampling import WeightedSampler
-from test_training import tiny_cfg
 
 
 def buffer_with(weights: list[float], capacity: int = 10) -> TensorDictReplayBuffer:

@@ -448,7 +448,7 @@ class LearnedFilter(nn.Module, Filter):
 
     def _stream(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Step-by-step filtering (closed loop; for the SLF the streaming form of its windows)."""
-        s, N = self.system, self.config.window
+        s = self.system
         runs, steps = y.shape[:2]
         layers = self._inference_layers()
         measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]

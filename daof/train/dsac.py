@@ -27,8 +27,8 @@ from torchrl.objectives import SoftUpdate
 
 from daof.filters.learned import startup_feature
 from daof.train.base import FilterTrainer
-from daof.train.sampling import WeightedSampler
 from daof.train.networks import make_critic
+from daof.train.sampling import WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
 from envs.history import FRAME_KEY, with_window
@@ -230,7 +230,8 @@ class DSACTTrainer(FilterTrainer):
                 with timeit("collect"):
                     batch = batch.reshape(-1).exclude(*_DROP_KEYS)
                     if self.startup_priority > 0:
-                        batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * startup_feature(batch["step"]).squeeze(-1) ** 2
+                        rho = startup_feature(batch["step"]).squeeze(-1)
+                        batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * rho**2
                     self.buffer.extend(batch)
                     self.frames += batch.numel()
                 metrics = {}
