@@ -65,7 +65,7 @@ class FilterConfig:
     innovation_input: bool = True
     #: the policy's GELU: "tanh" (its tanh approximation) or "none" (exact, erf). Same function to
     #: ~1e-3; the exact one costs ~5x more at batch 1 on CPU (3 of them per estimate), see
-    #: docs/benchmarks.md. Checkpoints saved before the field existed are exact.
+    #: docs/benchmarks/learned.md. Checkpoints saved before the field existed are exact.
     gelu_approximate: str = "tanh"
     #: closed-loop filters: what fills the window in front of the first frame after a reset,
     #: "same" (copies of it) or "zeros" (``envs.history``)
