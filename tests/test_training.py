@@ -179,3 +179,25 @@ def test_shared_reward_weights_keep_the_settled_ratio_between_states():
     torch.testing.assert_close(shared / w, (shared[:, :1] / w[0]).expand(-1, 2))
     per_state = reward_weight_schedule(system, std)
     torch.testing.assert_close(per_state[0] / w, torch.tensor([1 / 16, 1 / 4]))
+
+
+def test_the_untrained_network_is_never_the_best_checkpoint(tmp_path):
+    """The validation before the first update is on the curve but cannot become best.pt, even when
+    training makes things worse (it did for DAOF-v2 in a quick profile, which then reported the
+    untrained filter)."""
+    cfg = tiny_cfg(
+        "config.yaml", tmp_path, version="v2", **{"collector.total_frames": 400, "collector.warmup_frames": 200}
+    )
+    trainer = DSACTTrainer(cfg)
+    validate = trainer.validate
+
+    def untrained_scores_best():  # as if every update made the filter worse
+        record = validate()
+        record["score"] = 0.0 if trainer.updates == 0 else 1.0 + record["updates"]
+        return record
+
+    trainer.validate = untrained_scores_best
+    summary = trainer.train()
+    assert trainer.history[0]["updates"] == 0
+    assert summary["best"]["record"]["updates"] > 0
+    assert torch.load(tmp_path / "best.pt", weights_only=False)["extra"]["updates"] > 0

@@ -180,7 +180,8 @@ class FilterTrainer:
                 record = self.validate()
             self.history.append(record)
             log.update({f"val/{k}": v for k, v in record.items() if k.startswith("rmse")})
-            if record["score"] < self.best["score"]:
+            # the validation before the first update is the untrained network: on the curve, never the result
+            if self.updates > 0 and record["score"] < self.best["score"]:
                 self.best = {"score": record["score"], "frames": self.frames, "record": record}
                 self.save_filter("best.pt")
             rmse = {k[5:]: f"{v:.4g}" for k, v in record.items() if k.startswith("rmse_")}
