@@ -88,6 +88,8 @@ class FilteringEnv(EnvBase):
             prev_estimate=Unbounded(shape=(*B, n), device=dev),
             step=Unbounded(shape=(*B, 1), dtype=torch.int64, device=dev),
             true_state=Unbounded(shape=(*B, n), device=dev),
+            # the reward's terms, −W_i(x_i − x̂_i)², for a critic per state (0 after a reset)
+            reward_per_state=Unbounded(shape=(*B, n), device=dev),
             shape=B,
             device=dev,
         )
@@ -107,8 +109,11 @@ class FilteringEnv(EnvBase):
         self.rng.manual_seed(int(seed) if seed is not None else 0)
 
     # ----------------------------------------------------------------- dynamics
-    def _observation(self) -> dict:
+    def _observation(self, reward_per_state: torch.Tensor | None = None) -> dict:
+        if reward_per_state is None:
+            reward_per_state = torch.zeros_like(self._prev_estimate)
         return {
+            "reward_per_state": reward_per_state,
             "measurement": self._obs["measurement"],
             "control": self._obs["control"],
             "prev_control": self._obs["prev_control"],
@@ -149,15 +154,15 @@ class FilteringEnv(EnvBase):
         weights = self.reward_weights
         if weights.ndim == 2:  # W_t of the step being estimated
             weights = weights[self._sim["t"].clamp(1, len(weights)) - 1]
-        reward = -(error.pow(2) * weights).sum(-1, keepdim=True)
+        reward_per_state = -(error.pow(2) * weights)
         self._sim, self._obs = self.system.advance(self._sim, self.rng)
         self._prev_estimate = estimate.detach().clone()
         # sim["t"] counts measured steps; the episode ends after max_steps estimates.
         truncated = (self._sim["t"] > self.max_steps).unsqueeze(-1)
         return TensorDict(
             {
-                **self._observation(),
-                "reward": reward,
+                **self._observation(reward_per_state),
+                "reward": reward_per_state.sum(-1, keepdim=True),
                 "done": truncated.clone(),
                 "terminated": torch.zeros_like(truncated),
                 "truncated": truncated,

@@ -4,6 +4,11 @@ Follows ``specs/dsac_t.md`` (the GOPS ``dsact.py`` form of the algorithm) and th
 TorchRL's ``SACLoss``/``TQCLoss``: functional actor and critics with target copies, ``vmap`` over
 the critic ensemble, a TD(0) value estimator for the targets y_q and y_z, and keys set through
 ``_AcceptedKeys``/``set_keys``. The critic outputs (μ, raw scale) on its last dim, σ = softplus(raw).
+
+With ``reward_components=K > 1`` the reward is a vector whose sum is the task's reward, and each
+critic outputs K (μ, raw) pairs: one value distribution per reward term (a decomposed critic,
+van Seijen et al., NeurIPS 2017). Q = Σ_k Q_k holds for any γ, since the Bellman equation is
+linear in the reward; the entropy bonus is split evenly over the K terms.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ def critic_surrogate(
     Its gradient is the Gaussian NLL gradient with y_q in the mean term and the clipped sample
     y_b in the std term, both scaled by (σ̄² + ε):
     ∂L/∂μ = −(σ̄²+ε)(y_q − μ̂)/(σ̂²+ε),  ∂L/∂σ = −(σ̄²+ε)((μ̂ − y_b)² − σ̂²)/(σ̂³+ε)  (per sample / B).
-    Only ``mu`` and ``sigma`` carry gradient; ``sigma_bar`` broadcasts against the leading dims.
+    Only ``mu`` and ``sigma`` carry gradient; ``sigma_bar`` has the leading dims (all but the batch).
 
     ``mean_weighting="uniform"`` drops the per-sample 1/(σ̂² + ε) of the mean term, so ∂L/∂μ =
     −(y_q − μ̂): least squares, as β-NLL with β = 1 (Seitzer et al., ICLR 2022). With the Gaussian
@@ -52,7 +57,7 @@ def critic_surrogate(
     """
     mu_hat, sigma_hat = mu.detach(), sigma.detach()
     if mean_weighting == "uniform":
-        grad_mu = -(y_q - mu_hat) / (sigma_bar.pow(2) + epsilon).reshape(-1, *[1] * (mu.ndim - 1))
+        grad_mu = -(y_q - mu_hat) / (sigma_bar.pow(2) + epsilon).unsqueeze(-1)
     else:
         grad_mu = -(y_q - mu_hat) / (sigma_hat.pow(2) + epsilon)
     grad_sigma = -((mu_hat - y_b).pow(2) - sigma_hat.pow(2)) / (sigma_hat.pow(3) + epsilon)
@@ -73,7 +78,7 @@ class DSACTLoss(LossModule):
         actor_network: stochastic actor; its distribution (``get_dist``) is sampled for the
             action written under ``tensor_keys.action`` (e.g. ``"correction"`` for DAOF-v1).
         qvalue_network: critic reading the observation keys and ``tensor_keys.action``, writing
-            ``state_action_value`` with last dim 2: (μ, raw), σ = softplus(raw).
+            ``state_action_value`` with last dim 2K: K pairs (μ_k, raw_k), σ_k = softplus(raw_k).
 
     Keyword Args:
         num_qvalue_nets: critics in the ensemble (2 in DSAC-T).
@@ -86,6 +91,8 @@ class DSACTLoss(LossModule):
         sample_clip: the N(0, 1) draw for z′ is clamped to ±sample_clip before scaling by σ′.
         mean_weighting: "variance" (DSAC-T: each sample's mean term weighted by 1/(σ̂² + ε)) or
             "uniform" (least squares on the mean; see ``critic_surrogate``).
+        reward_components: K, the length of the reward vector under ``tensor_keys.reward``
+            (1: the scalar reward of DSAC-T; K > 1: one value distribution per reward term).
         delay_actor, delay_qvalue: keep target copies of actor / critics (update them with
             :class:`~torchrl.objectives.SoftUpdate`).
 
@@ -132,6 +139,7 @@ class DSACTLoss(LossModule):
         tau_b: float = 0.005,
         sample_clip: float = 3.0,
         mean_weighting: str = "variance",
+        reward_components: int = 1,
         delay_actor: bool = True,
         delay_qvalue: bool = True,
     ) -> None:
@@ -147,11 +155,14 @@ class DSACTLoss(LossModule):
         if mean_weighting not in ("variance", "uniform"):
             raise ValueError(f"mean_weighting must be 'variance' or 'uniform', got {mean_weighting!r}")
         self.mean_weighting = mean_weighting
+        if int(reward_components) < 1:
+            raise ValueError(f"reward_components must be >= 1, got {reward_components}")
+        self.reward_components = int(reward_components)
         device = next(iter(self.actor_network_params.values(True, True))).device
         self.log_alpha = torch.nn.Parameter(torch.tensor(math.log(alpha_init), device=device))
-        # σ̄_i, one per critic, and whether it has been set from a first batch: buffers, so they
-        # are checkpointed with the loss.
-        self.register_buffer("sigma_bar", torch.zeros(num_qvalue_nets, device=device))
+        # σ̄_ik, one per critic and reward term, and whether it has been set from a first batch:
+        # buffers, so they are checkpointed with the loss.
+        self.register_buffer("sigma_bar", torch.zeros(num_qvalue_nets, self.reward_components, device=device))
         self.register_buffer("sigma_bar_initialised", torch.zeros((), dtype=torch.bool, device=device))
         self._target_entropy_arg = target_entropy
         self._action_spec = action_spec
@@ -164,6 +175,12 @@ class DSACTLoss(LossModule):
             self.set_keys(action=sample_keys[0])
         if len(log_prob_keys) == 1:
             self.set_keys(log_prob=log_prob_keys[0])
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        key = prefix + "sigma_bar"
+        if key in state_dict and state_dict[key].ndim == 1:  # saved before σ̄ had a reward-term dim
+            state_dict[key] = state_dict[key].unsqueeze(-1)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _make_vmap(self):
         """The critic ensemble in one call: the input is shared, the parameters stacked on dim 0."""
@@ -273,9 +290,13 @@ class DSACTLoss(LossModule):
 
     # ------------------------------------------------------------------ pieces
     def _critic_mu_sigma(self, tensordict: TensorDictBase, params) -> tuple[Tensor, Tensor]:
-        """All critics at once: μ, σ of shape [num_qvalue_nets, *batch]."""
+        """All critics at once: μ, σ of shape [num_qvalue_nets, *batch, K]."""
         td = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         out = self._vmap_qnetworkN0(td, params).get(self.tensor_keys.state_action_value)
+        K = self.reward_components
+        if out.shape[-1] != 2 * K:
+            raise ValueError(f"the critic must output 2·reward_components = {2 * K} values, got {out.shape[-1]}")
+        out = out.unflatten(-1, (K, 2))
         return out[..., 0], F.softplus(out[..., 1])
 
     def _sample_actor(self, tensordict: TensorDictBase, params) -> tuple[Tensor, Tensor]:
@@ -287,11 +308,14 @@ class DSACTLoss(LossModule):
             return compute_rsample_log_prob(dist)
 
     def compute_targets(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
-        """y_q and y_z (spec, step 1), each of shape ``batch``, without gradient.
+        """y_q and y_z (spec, step 1), each of shape ``[*batch, K]``, without gradient.
 
         a′, log π′ come from the target actor; μ′ is the min over target critics of μ′_j and z′ is
-        the sample μ′_j + clamp(N(0,1), ±sample_clip)·σ′_j of that same (argmin-mean) critic.
+        the sample μ′_j + clamp(N(0,1), ±sample_clip)·σ′_j of that same (argmin-mean) critic, per
+        reward term. With γ = 0 both targets are the reward, and nothing is sampled or evaluated.
         """
+        if float(self.value_estimator.gamma) == 0.0:
+            return self._immediate_targets(tensordict)
         steps_key = self.value_estimator.tensor_keys.steps_to_next_obs
         target_td = tensordict.select("next", steps_key, strict=False).copy()
         with torch.no_grad():
@@ -304,12 +328,21 @@ class DSACTLoss(LossModule):
             idx = mu_n.argmin(0, keepdim=True)
             mu_next = mu_n.gather(0, idx).squeeze(0)
             z_next = z_n.gather(0, idx).squeeze(0)
-            soft = self._alpha * next_log_prob.reshape(mu_next.shape)
+            soft = self._alpha * next_log_prob.reshape(*mu_next.shape[:-1], 1) / self.reward_components
             # Both targets in one TD(0) call: last dim (y_q, y_z); reward/terminated broadcast.
             next_value = torch.stack([mu_next - soft, z_next - soft], -1)
             for key in (self.tensor_keys.reward, self.tensor_keys.terminated, self.tensor_keys.done):
                 nested = ("next", *key) if isinstance(key, tuple) else ("next", key)
                 value = target_td.get(nested)
+                if (
+                    key == self.tensor_keys.reward
+                    and self.reward_components > 1
+                    and value.shape[-1] != self.reward_components
+                ):
+                    raise ValueError(
+                        f"reward {key!r} has {value.shape[-1]} terms, the loss expects reward_components="
+                        f"{self.reward_components}"
+                    )
                 while value.ndim < next_value.ndim:
                     value = value.unsqueeze(-1)
                 target_td.set(nested, value.expand_as(next_value))
@@ -322,9 +355,23 @@ class DSACTLoss(LossModule):
         return targets[..., 0], targets[..., 1]
 
     @torch.no_grad()
+    def _immediate_targets(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """y_q = y_z = r for γ = 0 (a contextual bandit: the next state's value is multiplied by 0)."""
+        reward = tensordict.get(("next", self.tensor_keys.reward))
+        if self.reward_components > 1 and reward.shape[-1] != self.reward_components:
+            raise ValueError(
+                f"reward {self.tensor_keys.reward!r} has {reward.shape[-1]} terms, the loss expects "
+                f"reward_components={self.reward_components}"
+            )
+        if reward.shape[-1] != self.reward_components or reward.ndim < len(tensordict.batch_size) + 1:
+            reward = reward.reshape(*tensordict.batch_size, 1)
+        reward = reward.expand(*tensordict.batch_size, self.reward_components)
+        return reward, reward.clone()
+
+    @torch.no_grad()
     def _update_sigma_bar(self, sigma: Tensor) -> Tensor:
-        """σ̄_i ← (1−τ_b)σ̄_i + τ_b·mean(σ_i) in training mode (first batch: σ̄_i = mean(σ_i))."""
-        batch_mean = sigma.detach().reshape(sigma.shape[0], -1).mean(-1)
+        """σ̄_i ← (1−τ_b)σ̄_i + τ_b·mean(σ_i) in training mode (first batch: σ̄_i = mean(σ_i)), per reward term."""
+        batch_mean = sigma.detach().reshape(sigma.shape[0], -1, sigma.shape[-1]).mean(1)
         if not self.training:
             return self.sigma_bar.clone() if self.sigma_bar_initialised else batch_mean
         if self.sigma_bar_initialised:
@@ -338,31 +385,35 @@ class DSACTLoss(LossModule):
         """Critic loss Σ_i L_i (spec, steps 1–5) and its diagnostics; updates σ̄ first."""
         y_q, y_z = self.compute_targets(tensordict)
         mu, sigma = self._critic_mu_sigma(tensordict, self.qvalue_network_params)
-        sigma_bar = self._update_sigma_bar(sigma)
-        sb = sigma_bar.reshape(-1, *[1] * (mu.ndim - 1))
+        sigma_bar = self._update_sigma_bar(sigma)  # [E, K]
+        sb = sigma_bar.reshape(sigma_bar.shape[0], *[1] * (mu.ndim - 2), sigma_bar.shape[1])
         y_b = clip_sampled_target(y_z, mu, sb, self.xi)
-        flat = (mu.flatten(1), sigma.flatten(1), y_q.flatten().expand_as(mu.flatten(1)), y_b.flatten(1))
+
+        def per_term(x: Tensor) -> Tensor:  # [E, *batch, K] -> [E, K, batch]
+            return x.movedim(-1, 1).flatten(2)
+
+        flat = (per_term(mu), per_term(sigma), per_term(y_q.expand_as(mu)), per_term(y_b))
         loss = critic_surrogate(*flat, sigma_bar, self.epsilon, self.mean_weighting).sum()
         with torch.no_grad():
             err = y_q - mu
             nll = 0.5 * math.log(2 * math.pi) + sigma.log() + err.pow(2) / (2 * sigma.pow(2))
             metadata = {
-                "td_error": err.abs().max(0)[0],
-                "q_mean": mu.mean(),
+                "td_error": err.abs().sum(-1).max(0)[0],
+                "q_mean": mu.sum(-1).mean(),
                 "q_std": sigma.mean(),
                 "sigma_bar": sigma_bar,
-                "td_error_abs": err.abs().mean(),
+                "td_error_abs": err.abs().sum(-1).mean(),
                 "nll": nll.mean(),
             }
         return loss, metadata
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
-        """L_π = mean[α log π(ã|s) − min_i μ_i(s, ã)] with the critics' parameters detached."""
+        """L_π = mean[α log π(ã|s) − Σ_k min_i μ_ik(s, ã)] with the critics' parameters detached."""
         action, log_prob = self._sample_actor(tensordict, self.actor_network_params)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.tensor_keys.action, action)
         mu, _ = self._critic_mu_sigma(td_q, self._cached_detached_qvalue_params)
-        min_mu = mu.min(0)[0]
+        min_mu = mu.min(0)[0].sum(-1)
         log_prob = log_prob.reshape(min_mu.shape)
         loss = (self._alpha * log_prob - min_mu).mean()
         return loss, {"log_prob": log_prob.detach()}

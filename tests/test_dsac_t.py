@@ -39,14 +39,16 @@ def make_mlp_critic(key="correction"):
 
 
 class ConstCritic(nn.Module):
-    """A critic whose (μ, raw) output is one parameter, whatever the input."""
+    """A critic whose (μ, raw) output (per reward term) is one parameter, whatever the input."""
 
-    def __init__(self):
+    def __init__(self, terms=1):
         super().__init__()
-        self.out = nn.Parameter(torch.zeros(2))
+        self.out = nn.Parameter(torch.zeros(2 * terms))
 
     def forward(self, obs, act):
-        return self.out.expand(*obs.shape[:-1], 2) + 0.0 * (obs.sum(-1, keepdim=True) + act.sum(-1, keepdim=True))
+        return self.out.expand(*obs.shape[:-1], self.out.numel()) + 0.0 * (
+            obs.sum(-1, keepdim=True) + act.sum(-1, keepdim=True)
+        )
 
 
 def make_loss(critic=None, **kwargs):
@@ -58,8 +60,9 @@ def make_loss(critic=None, **kwargs):
 
 
 def const_loss(online, target, **kwargs):
-    """A loss with constant critics: ``online``/``target`` are [(μ, raw)] per critic."""
-    loss = make_loss(TensorDictModule(ConstCritic(), ["observation", "correction"], ["state_action_value"]), **kwargs)
+    """A loss with constant critics: ``online``/``target`` are [(μ, raw) per reward term] per critic."""
+    critic = ConstCritic(kwargs.get("reward_components", 1))
+    loss = make_loss(TensorDictModule(critic, ["observation", "correction"], ["state_action_value"]), **kwargs)
     with torch.no_grad():
         loss.qvalue_network_params["module", "out"].copy_(torch.tensor(online))
         loss.target_qvalue_network_params["module", "out"].copy_(torch.tensor(target))
@@ -67,7 +70,7 @@ def const_loss(online, target, **kwargs):
 
 
 def make_batch(b, reward=None, terminated=None, done=None):
-    reward = torch.randn(b, 1) if reward is None else reward.reshape(b, 1)
+    reward = torch.randn(b, 1) if reward is None else reward.reshape(b, -1)
     terminated = torch.zeros(b, 1, dtype=torch.bool) if terminated is None else terminated.reshape(b, 1)
     done = terminated.clone() if done is None else done.reshape(b, 1)
     return TensorDict(
@@ -145,7 +148,7 @@ def test_clip_in_the_loss_is_centred_on_mu_and_sized_by_sigma_bar():
     batch = make_batch(16, reward=torch.zeros(16))
     loss_q, meta = loss.qvalue_loss(batch)
     loss_q.backward()
-    torch.testing.assert_close(meta["sigma_bar"], torch.ones(2))
+    torch.testing.assert_close(meta["sigma_bar"], torch.ones(2, 1))
     grad = loss.qvalue_network_params["module", "out"].grad
     d_sigma_d_raw = torch.sigmoid(torch.tensor(RAW_ONE))
     # (σ̄²+ε)·[−(y_q−μ)/(σ²+ε)] = −4 ;  (σ̄²+ε)·[−((y_b−μ)²−σ²)/(σ³+ε)] = −(9 − 1) = −8
@@ -186,7 +189,7 @@ def test_truncation_bootstraps_and_termination_does_not():
     done = torch.tensor([False, True, True])
     terminated = torch.tensor([False, False, True])  # plain, truncated, terminated
     y_q, y_z = loss.compute_targets(make_batch(3, reward=torch.ones(3), terminated=terminated, done=done))
-    expected = torch.tensor([1 + GAMMA * 5.0, 1 + GAMMA * 5.0, 1.0])
+    expected = torch.tensor([[1 + GAMMA * 5.0], [1 + GAMMA * 5.0], [1.0]])
     torch.testing.assert_close(y_q, expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(y_z, expected, atol=1e-5, rtol=0)
 
@@ -199,7 +202,7 @@ def test_sigma_bar_moving_average_and_state_dict_round_trip():
     for _ in range(3):
         _, meta = loss.qvalue_loss(batch)
         with torch.no_grad():
-            sigmas.append(loss._critic_mu_sigma(batch, loss.qvalue_network_params)[1].mean(-1))
+            sigmas.append(loss._critic_mu_sigma(batch, loss.qvalue_network_params)[1].mean(1))
     # Params do not change between calls, so σ̄ = m, then 0.9m + 0.1m … = m.
     torch.testing.assert_close(loss.sigma_bar, sigmas[0])
     with torch.no_grad():
@@ -258,3 +261,59 @@ def test_soft_update_moves_target_actor_and_target_critics():
         for key, value in target.items(True, True):
             torch.testing.assert_close(value, expected[key])
             assert not torch.equal(value, old_target[key])
+
+
+def test_decomposed_critic_per_term_targets_argmin_and_actor_sum():
+    """K = 2 reward terms: each term bootstraps on its own argmin-mean target critic, the entropy
+    bonus is split evenly, and the actor maximises Σ_k min_i μ_ik."""
+    alpha = 0.5
+    online = [[1.0, RAW_ONE, 3.0, RAW_ONE], [2.0, RAW_ONE, -1.0, RAW_ONE]]
+    target = [[5.0, RAW_ZERO, 0.0, RAW_ZERO], [6.0, RAW_ZERO, -1.0, RAW_ZERO]]
+    loss = const_loss(online, target, alpha_init=alpha, reward_components=2)
+    batch = make_batch(4, reward=torch.tensor([[1.0, 2.0]]).expand(4, 2))
+    y_q, y_z = loss.compute_targets(batch)
+    with torch.no_grad():
+        next_td = batch["next"].copy()
+        torch.manual_seed(0)
+        _, log_prob = loss._sample_actor(next_td, loss.target_actor_network_params)
+    assert y_q.shape == (4, 2)
+    # term 0: min(5, 6) = 5 (critic 0); term 1: min(0, −1) = −1 (critic 1); each pays α log π′ / 2
+    torch.testing.assert_close(y_z, y_q)  # the argmin critic of each term has σ′ ≈ 0
+    bonus = y_q - torch.tensor([1 + GAMMA * 5.0, 2 - GAMMA * 1.0])
+    torch.testing.assert_close(bonus[:, 0], bonus[:, 1])  # the same split bonus on both terms
+    assert bonus.abs().max() > 0
+    # actor: Σ_k min_i μ_ik = min(1, 2) + min(3, −1) = 0, so L_π = mean(α log π)
+    torch.manual_seed(1)
+    loss_a, meta = loss.actor_loss(batch)
+    torch.testing.assert_close(loss_a, (alpha * meta["log_prob"]).mean())
+    _, meta_q = loss.qvalue_loss(batch)
+    assert meta_q["sigma_bar"].shape == (2, 2)
+    with pytest.raises(ValueError, match="reward_components"):
+        loss.compute_targets(make_batch(4))  # a scalar reward for a 2-term critic
+
+
+def test_sigma_bar_of_a_checkpoint_without_reward_terms_loads():
+    loss = make_loss()
+    state = loss.state_dict()
+    state["sigma_bar"] = torch.tensor([0.3, 0.4])  # σ̄ as saved before it had a reward-term dim
+    loss.load_state_dict(state)
+    torch.testing.assert_close(loss.sigma_bar, torch.tensor([[0.3], [0.4]]))
+
+
+@pytest.mark.parametrize("terms", [1, 2])
+def test_gamma_zero_targets_are_the_reward_without_bootstrapping(terms):
+    """γ = 0 skips the target actor and critics; the targets equal the bootstrapped formula's."""
+    torch.manual_seed(5)
+    critic = ConstCritic(terms)
+    loss = make_loss(
+        TensorDictModule(critic, ["observation", "correction"], ["state_action_value"]), reward_components=terms
+    )
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=0.0)
+    batch = make_batch(6, reward=torch.randn(6, terms), terminated=torch.tensor([0, 1, 0, 0, 1, 0]).bool())
+    y_q, y_z = loss.compute_targets(batch)
+    torch.testing.assert_close(y_q, batch["next", "reward"])
+    torch.testing.assert_close(y_z, batch["next", "reward"])
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=1e-30)  # the general path, next values × ~0
+    slow_q, slow_z = loss.compute_targets(batch)
+    torch.testing.assert_close(slow_q, y_q)
+    torch.testing.assert_close(slow_z, y_z)

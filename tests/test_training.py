@@ -201,3 +201,16 @@ def test_the_untrained_network_is_never_the_best_checkpoint(tmp_path):
     assert trainer.history[0]["updates"] == 0
     assert summary["best"]["record"]["updates"] > 0
     assert torch.load(tmp_path / "best.pt", weights_only=False)["extra"]["updates"] > 0
+
+
+def test_a_critic_per_state_learns_on_the_reward_terms(tmp_path):
+    """``loss.critic_per_state``: the critics output a value distribution per state, trained on
+    the env's ``reward_per_state``, whose terms sum to the scalar reward."""
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"collector.total_frames": 300, "loss.critic_per_state": True})
+    trainer = DSACTTrainer(cfg)
+    assert trainer.loss.tensor_keys.reward == "reward_per_state"
+    trainer.train()
+    batch = trainer.buffer.sample()
+    torch.testing.assert_close(batch["next", "reward_per_state"].sum(-1, keepdim=True), batch["next", "reward"])
+    assert trainer.loss.sigma_bar.shape == (2, trainer.system.state_dim)
+    assert bool((trainer.loss.sigma_bar > 0).all()) and trainer.updates > 0

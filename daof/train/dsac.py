@@ -37,7 +37,7 @@ from losses import DSACTLoss
 __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
-_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale"]
+_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state"]
 _PRIORITY_KEY = "sample_priority"
 _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll")
 
@@ -79,7 +79,10 @@ class DSACTTrainer(FilterTrainer):
 
     def _make_loss(self) -> None:
         cfg = self.cfg
-        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth))
+        per_state = bool(cfg.loss.get("critic_per_state", False))
+        # a critic per state: the reward is a sum of per-state terms, each learned on its own
+        terms = self.system.state_dim if per_state else 1
+        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms)
         self.loss = DSACTLoss(
             self.filter.stochastic_actor(),
             self.critic,
@@ -87,8 +90,11 @@ class DSACTTrainer(FilterTrainer):
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
             mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
+            reward_components=terms,
         )
         self.loss.set_keys(action=self.filter.action_key)
+        if per_state:
+            self.loss.set_keys(reward="reward_per_state")
         self.loss.make_value_estimator(gamma=float(cfg.loss.gamma))
         self.target_updater = SoftUpdate(self.loss, tau=float(cfg.loss.tau))
         o = cfg.optim
