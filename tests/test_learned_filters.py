@@ -24,12 +24,13 @@ def small(kind, window=4, system="veh2dof", **config):
 
 
 @pytest.mark.parametrize("padding", ["same", "zeros"])
-@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2"])
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "DAOF-v2-increment"])
 def test_offline_run_equals_env_rollout(kind, padding):
     """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed.
 
     The rollout runs 2 episodes of 15 steps, so the window is padded after a reset too."""
-    f = small(kind, window_padding=padding)
+    extra = {"v2_action": "increment"} if kind.endswith("increment") else {}
+    f = small(kind.removesuffix("-increment"), window_padding=padding, **extra)
     env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15, padding=padding)
     with torch.no_grad():
         rollout = env.rollout(30, f.filter_module(), break_when_any_done=False)
@@ -148,6 +149,24 @@ def test_slf_is_open_loop_and_vectorised():
     torch.testing.assert_close(f.run(changed)[:, 15:], est[:, 15:])
     # streamed one step at a time (how its cost is timed) it gives the same estimates
     torch.testing.assert_close(f.run_streaming(data), est, atol=1e-6, rtol=1e-5)
+
+
+def test_incremental_v2_updates_the_previous_estimate_within_a_bound_from_data():
+    """x̂_t − x̂_{t−1} = b_t ⊙ a_t, b_t = k · max(σ_Δ, ρ_t σ_0) fitted on simulated states, no model."""
+    f = small("DAOF-v2", v2_action="increment")
+    assert f.action_key == "correction" and f.acts_by_update
+    states = f.system.simulate(4, 50, seed=7_000_001)["state"]
+    step_change = (states[:, 1:] - states[:, :-1]).flatten(0, 1).std(0)
+    first = (states[:, 0] - f.system.prior.mean).pow(2).mean(0).sqrt()
+    torch.testing.assert_close(f.correction_scale[-1], 4.0 * step_change)
+    torch.testing.assert_close(f.correction_scale[0], 4.0 * torch.maximum(step_change, first))
+    data = f.system.simulate(2, 30, seed=3)
+    est = f.run(data)
+    prev = torch.cat([f.system.prior.mean.expand(2, 1, -1), est[:, :-1]], 1)
+    unit = (est - prev) / f.correction_scale[:30]
+    assert unit.abs().max() <= 1.0 + 1e-5 and unit.abs().max() > 0
+    with pytest.raises(ValueError, match="v2_action"):
+        FilterConfig(kind="DAOF-v2", system="veh2dof", v2_action="jump")
 
 
 def test_checkpoint_round_trip(tmp_path):

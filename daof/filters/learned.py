@@ -1,6 +1,7 @@
 """Learned filters as TensorDict modules: DAOF-v2, DAOF-v1 and the supervised SLF.
 
-* DAOF-v2: x̂_t = π(h_t^N)                          (model-free)
+* DAOF-v2: x̂_t = π(h_t^N)                          (model-free; or, with ``v2_action="increment"``,
+  x̂_t = x̂_{t−1} + b_t ⊙ π(h_t^N), the same function class with a bound b_t sized from data)
 * DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N)  (model predictor + learned update,
   π ∈ [−1, 1]ⁿ, the bound b_t sized from the noise: see ``FilterConfig.correction_bound``)
 * SLF:     x̂_t = φ(y_{t−N+1..t}, u_{t−N+1..t})     (open loop, trained by regression)
@@ -33,6 +34,7 @@ __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
 CORRECTION_BOUNDS = ("kalman", "process")
+V2_ACTIONS = ("estimate", "increment")
 #: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
 SCHEDULE_STEPS = 50
 #: window key an SLF reads (measurements and controls only, no fed-back estimates)
@@ -70,6 +72,12 @@ class FilterConfig:
     #: closed-loop filters: what fills the window in front of the first frame after a reset,
     #: "same" (copies of it) or "zeros" (``envs.history``)
     window_padding: str = "same"
+    #: DAOF-v2's action: "estimate" (the paper's x̂_t = π(h_t), squashed onto the plausible state
+    #: range) or "increment" (x̂_t = x̂_{t−1} + b_t ⊙ π(h_t), π ∈ [−1, 1]ⁿ; x̂_{t−1} is in h_t, so the
+    #: filters are the same but the action is sized like the error, not like the state's range).
+    #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
+    #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
+    v2_action: str = "estimate"
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -80,6 +88,8 @@ class FilterConfig:
             raise ValueError(f"window_padding must be one of {PADDINGS}, got {self.window_padding!r}")
         if self.gelu_approximate not in ("tanh", "none"):
             raise ValueError(f"gelu_approximate must be 'tanh' or 'none', got {self.gelu_approximate!r}")
+        if self.v2_action not in V2_ACTIONS:
+            raise ValueError(f"v2_action must be one of {V2_ACTIONS}, got {self.v2_action!r}")
         if self.correction_bound not in CORRECTION_BOUNDS:
             raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
 
@@ -166,6 +176,18 @@ class PolicyNet(nn.Module):
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
 
+def increment_scale(states: torch.Tensor, system: StochasticSystem) -> torch.Tensor:
+    """σ_t = max(σ_Δ, ρ_t · σ_0) per step t = 1..SCHEDULE_STEPS, [S, n], from [runs, steps, n] true states.
+
+    σ_Δ: std of x_t − x_{t−1} over every run and step; σ_0: std of x_1 − x̂_0 (the prior mean's error
+    at the first estimate); ρ_t the start-up feature. Data only: no model of the dynamics.
+    """
+    step_change = (states[:, 1:] - states[:, :-1]).flatten(0, 1).std(0)
+    first_error = (states[:, 0] - system.prior.mean.to(states)).pow(2).mean(0).sqrt()
+    rho = startup_feature(torch.arange(1, SCHEDULE_STEPS + 1, device=states.device).unsqueeze(-1))
+    return torch.maximum(step_change, rho * first_error).float()
+
+
 def sliding_windows(frames: torch.Tensor, window: int) -> torch.Tensor:
     """[runs, steps, F] frames -> [runs, steps, N·F] windows, oldest first, padded like CatFrames.
 
@@ -220,11 +242,15 @@ class LearnedFilter(nn.Module, Filter):
             s.measurement_dim,
             config.gelu_approximate,
         )
-        if config.kind == "DAOF-v1":
-            # the actor's action is the update in units of its bound b_t; b_t starts as the
-            # process-noise bound and ``set_correction_scale`` widens it for "kalman"
+        if self.acts_by_update:
+            # the actor's action is the update in units of its bound b_t; DAOF-v1's b_t starts as
+            # the process-noise bound and ``set_schedules`` widens it for "kalman"; an incremental
+            # DAOF-v2's is fitted on data with the normaliser
             low, high = -torch.ones(n), torch.ones(n)
-            floor = config.correction_sigmas * s.process_noise.covariance.diagonal().sqrt()
+            if config.kind == "DAOF-v1":
+                floor = config.correction_sigmas * s.process_noise.covariance.diagonal().sqrt()
+            else:
+                floor = config.correction_sigmas * s.error_scale
             self.register_buffer("correction_scale", floor.float().expand(SCHEDULE_STEPS, n).clone())
         else:
             low, high = s.state_low.clone(), s.state_high.clone()
@@ -235,6 +261,11 @@ class LearnedFilter(nn.Module, Filter):
         self.register_buffer("state_high", s.state_high.clone().float())
 
     # ----------------------------------------------------------------- shapes
+    @property
+    def acts_by_update(self) -> bool:
+        """Whether the action is a bounded update of a prediction (DAOF-v1, incremental DAOF-v2)."""
+        return self.config.kind == "DAOF-v1" or (self.config.kind == "DAOF-v2" and self.config.v2_action == "increment")
+
     @property
     def frame_dim(self) -> int:
         s = self.system
@@ -252,16 +283,17 @@ class LearnedFilter(nn.Module, Filter):
 
     @property
     def action_key(self) -> str:
-        return KINDS[self.config.kind]
+        return "correction" if self.acts_by_update else KINDS[self.config.kind]
 
     @property
     def action_scale(self) -> torch.Tensor:
         """What one unit of the actor's action is in state units, once the filter has settled.
 
-        DAOF-v1's action is its update in units of the bound b_t (the settled b is the schedule's
-        last entry); DAOF-v2 and SLF output the estimate itself. DSAC-T's entropy target uses it.
+        DAOF-v1's (and an incremental DAOF-v2's) action is its update in units of the bound b_t
+        (the settled b is the schedule's last entry); DAOF-v2 and SLF output the estimate itself.
+        DSAC-T's entropy target uses it.
         """
-        if self.config.kind == "DAOF-v1":
+        if self.acts_by_update:
             return self.correction_scale[-1]
         return torch.ones_like(self.low)
 
@@ -293,6 +325,8 @@ class LearnedFilter(nn.Module, Filter):
         loc, scale = flat.mean(0), flat.std(0).clamp_min(1e-6)
         self.policy.input_loc.copy_(loc.repeat(self.config.window))
         self.policy.input_scale.copy_(scale.repeat(self.config.window))
+        if self.acts_by_update and self.config.kind == "DAOF-v2":
+            self.correction_scale.copy_(self.config.correction_sigmas * increment_scale(data["state"], self.system))
 
     @torch.no_grad()
     def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
@@ -322,7 +356,9 @@ class LearnedFilter(nn.Module, Filter):
 
     # ----------------------------------------------------------------- networks
     def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
-        """DAOF-v1's model predictor f(x̂_{t−1}, u_{t−1})."""
+        """DAOF-v1's model predictor f(x̂_{t−1}, u_{t−1}); an incremental DAOF-v2 holds x̂_{t−1}."""
+        if self.config.kind != "DAOF-v1":
+            return prev_estimate
         return self.system.f(prev_estimate, prev_control)
 
     def estimate(self, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
@@ -359,7 +395,7 @@ class LearnedFilter(nn.Module, Filter):
     def exploration_policy(self) -> TensorDictSequential:
         """What a collector runs: sample from π and, for DAOF-v1, add the prediction."""
         actor = self.stochastic_actor()
-        if self.config.kind != "DAOF-v1":
+        if not self.acts_by_update:
             return TensorDictSequential(actor)
         add = TensorDictModule(
             self._add_prediction,
@@ -369,8 +405,8 @@ class LearnedFilter(nn.Module, Filter):
         return TensorDictSequential(actor, add)
 
     def filter_module(self) -> TensorDictModule:
-        """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for v1, t where used), writes ``action``."""
-        if self.config.kind == "DAOF-v1":
+        """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for an update, t where used), writes ``action``."""
+        if self.acts_by_update:
             in_keys = [self.input_key, "prev_estimate", "prev_control", "step"]
             return TensorDictModule(self, in_keys=in_keys, out_keys=["action"])
         return TensorDictModule(self, in_keys=dict(zip(["window", "step"], self.policy_in_keys)), out_keys=["action"])
@@ -407,13 +443,13 @@ class LearnedFilter(nn.Module, Filter):
         layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
         # a = mid + half · tanh(u) maps onto the action's bounds; DAOF-v1's are ±1 (a = tanh(u))
-        squash = None if self.config.kind == "DAOF-v1" else ((self.high + self.low) / 2, (self.high - self.low) / 2)
+        squash = None if self.acts_by_update else ((self.high + self.low) / 2, (self.high - self.low) / 2)
         return layers + [(last.weight[:n], last.bias[:n], squash)]
 
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
         (w0, b0, w_nu, w_rho), *hidden = layers[:-1]
-        v1 = self.config.kind == "DAOF-v1"
+        v1 = self.acts_by_update
         prediction = self.predict(prev_estimate, prev_control) if v1 else None
         # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
         if w_nu is not None:

@@ -55,6 +55,7 @@ class FilterTrainer:
                 startup_input=bool(net.get("startup_input", True)),
                 innovation_input=bool(net.get("innovation_input", True)),
                 window_padding=str(net.get("window_padding", "same")),
+                v2_action=str(net.get("v2_action", "estimate")),
             ),
             self.system,
         )
