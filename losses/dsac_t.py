@@ -314,8 +314,10 @@ class DSACTLoss(LossModule):
         the sample μ′_j + clamp(N(0,1), ±sample_clip)·σ′_j of that same (argmin-mean) critic, per
         reward term. With γ = 0 both targets are the reward, and nothing is sampled or evaluated.
         """
+        reward = self._reward(tensordict)
         if float(self.value_estimator.gamma) == 0.0:
-            return self._immediate_targets(tensordict)
+            reward = reward.reshape(*tensordict.batch_size, -1).expand(*tensordict.batch_size, self.reward_components)
+            return reward, reward.clone()
         steps_key = self.value_estimator.tensor_keys.steps_to_next_obs
         target_td = tensordict.select("next", steps_key, strict=False).copy()
         with torch.no_grad():
@@ -334,15 +336,6 @@ class DSACTLoss(LossModule):
             for key in (self.tensor_keys.reward, self.tensor_keys.terminated, self.tensor_keys.done):
                 nested = ("next", *key) if isinstance(key, tuple) else ("next", key)
                 value = target_td.get(nested)
-                if (
-                    key == self.tensor_keys.reward
-                    and self.reward_components > 1
-                    and value.shape[-1] != self.reward_components
-                ):
-                    raise ValueError(
-                        f"reward {key!r} has {value.shape[-1]} terms, the loss expects reward_components="
-                        f"{self.reward_components}"
-                    )
                 while value.ndim < next_value.ndim:
                     value = value.unsqueeze(-1)
                 target_td.set(nested, value.expand_as(next_value))
@@ -354,19 +347,15 @@ class DSACTLoss(LossModule):
             targets = self.value_estimator.value_estimate(target_td, next_value=next_value)
         return targets[..., 0], targets[..., 1]
 
-    @torch.no_grad()
-    def _immediate_targets(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
-        """y_q = y_z = r for γ = 0 (a contextual bandit: the next state's value is multiplied by 0)."""
+    def _reward(self, tensordict: TensorDictBase) -> Tensor:
+        """The next reward, checked to have ``reward_components`` terms on its last dim when K > 1."""
         reward = tensordict.get(("next", self.tensor_keys.reward))
         if self.reward_components > 1 and reward.shape[-1] != self.reward_components:
             raise ValueError(
                 f"reward {self.tensor_keys.reward!r} has {reward.shape[-1]} terms, the loss expects "
                 f"reward_components={self.reward_components}"
             )
-        if reward.shape[-1] != self.reward_components or reward.ndim < len(tensordict.batch_size) + 1:
-            reward = reward.reshape(*tensordict.batch_size, 1)
-        reward = reward.expand(*tensordict.batch_size, self.reward_components)
-        return reward, reward.clone()
+        return reward
 
     @torch.no_grad()
     def _update_sigma_bar(self, sigma: Tensor) -> Tensor:
