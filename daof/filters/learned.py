@@ -393,7 +393,7 @@ class LearnedFilter(nn.Module, Filter):
         return torch.clamp(estimate, self.state_low, self.state_high)
 
     def exploration_policy(self) -> TensorDictSequential:
-        """What a collector runs: sample from π and, for DAOF-v1, add the prediction."""
+        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction."""
         actor = self.stochastic_actor()
         if not self.acts_by_update:
             return TensorDictSequential(actor)
@@ -449,8 +449,8 @@ class LearnedFilter(nn.Module, Filter):
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
         (w0, b0, w_nu, w_rho), *hidden = layers[:-1]
-        v1 = self.acts_by_update
-        prediction = self.predict(prev_estimate, prev_control) if v1 else None
+        by_update = self.acts_by_update
+        prediction = self.predict(prev_estimate, prev_control) if by_update else None
         # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
         if w_nu is not None:
             nu = self.innovation(window, prediction) / schedule_row(self.policy.innovation_scale, step)
@@ -466,7 +466,7 @@ class LearnedFilter(nn.Module, Filter):
         out = torch.tanh(nn.functional.linear(h, weight, bias))  # tanh of the pre-squash loc
         if squash is not None:
             out = torch.addcmul(squash[0], squash[1], out)
-        if v1:
+        if by_update:
             out = self._add_prediction(out, prev_estimate, prev_control, step, prediction)
         return out
 
