@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from daof.train.dsac import _DROP_KEYS, DSACTTrainer
+from daof.train.dsac import DSACTTrainer
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,7 +42,7 @@ def time_update(trainer: DSACTTrainer, repeats: int) -> tuple[float, float, floa
     """Median ms of the targets, critic loss + backward, actor loss + backward and a whole update."""
     collector = trainer._make_collector(int(trainer.cfg.collector.warmup_frames))
     for batch in collector:
-        trainer.buffer.extend(batch.reshape(-1).exclude(*_DROP_KEYS))
+        trainer.buffer.extend(trainer.to_replay(batch))
     collector.shutdown()
     batch, loss = trainer.buffer.sample(), trainer.loss
     return (

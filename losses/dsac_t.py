@@ -216,6 +216,8 @@ class DSACTLoss(LossModule):
             value_network=None,
             **hp,
         )
+        # read once here: a float() of the (possibly CUDA) γ on every update would synchronise
+        self._zero_discount = float(self.value_estimator.gamma) == 0.0
         return self
 
     def _set_in_keys(self):
@@ -315,10 +317,11 @@ class DSACTLoss(LossModule):
         reward term. With γ = 0 both targets are the reward, and nothing is sampled or evaluated.
         """
         reward = self._reward(tensordict)
-        if float(self.value_estimator.gamma) == 0.0:
+        estimator = self.value_estimator  # built on first use, which sets ``_zero_discount``
+        if self._zero_discount:
             reward = reward.reshape(*tensordict.batch_size, -1).expand(*tensordict.batch_size, self.reward_components)
             return reward, reward.clone()
-        steps_key = self.value_estimator.tensor_keys.steps_to_next_obs
+        steps_key = estimator.tensor_keys.steps_to_next_obs
         target_td = tensordict.select("next", steps_key, strict=False).copy()
         with torch.no_grad():
             next_td = target_td.get("next").copy()
@@ -344,7 +347,7 @@ class DSACTLoss(LossModule):
                 while steps.ndim < next_value.ndim:
                     steps = steps.unsqueeze(-1)
                 target_td.set(steps_key, steps.expand_as(next_value))
-            targets = self.value_estimator.value_estimate(target_td, next_value=next_value)
+            targets = estimator.value_estimate(target_td, next_value=next_value)
         return targets[..., 0], targets[..., 1]
 
     def _reward(self, tensordict: TensorDictBase) -> Tensor:

@@ -297,6 +297,26 @@ def test_stale_or_missing_checkpoints_exit_with_one_line(tmp_path):
         load_trained({"SLF": missing}, system, {"system": "veh2dof"})
 
 
+def test_a_run_of_another_config_is_set_aside_not_reused(tmp_path):
+    """A finished run is reused only if its run_config.json is the config the job asks for now."""
+    from daof.evaluate.jobs import TrainingJob
+    from daof.train.checkpoint import RUN_CONFIG
+
+    script = ROOT / "recipes" / "veh2dof" / "train_slf.py"
+    job = TrainingJob("SLF", script, tmp_path / "slf", 100, ["window=4"])
+    job.output_dir.mkdir()
+    (job.output_dir / "summary.json").write_text(json.dumps({"frames": 100}))
+    (job.output_dir / "best.pt").write_bytes(b"")
+    assert not job.finished()  # no record of its config: not trusted
+    (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config()))
+    assert job.finished() and job.set_aside_if_stale() is None
+    assert TrainingJob("SLF", script, job.output_dir, 50, ["window=4"]).finished()  # the budget may differ
+    changed = TrainingJob("SLF", script, job.output_dir, 100, ["window=4", "optim.lr=1e-3"])
+    assert not changed.finished()
+    assert changed.set_aside_if_stale() == tmp_path / "slf.stale-1"
+    assert (tmp_path / "slf.stale-1" / RUN_CONFIG).is_file() and not job.output_dir.exists()
+
+
 def test_a_failed_training_exits_with_one_line(tmp_path):
     from daof.evaluate.experiment import train
     from daof.evaluate.jobs import TrainingJob

@@ -2,21 +2,37 @@
 
 A job is one recipe invocation with Hydra overrides and its own output directory. A job whose
 ``summary.json`` records at least the requested number of frames is finished and reused; one
-with a ``checkpoint.pt`` is resumed from it; anything else starts fresh. Progress: the latest
-progress-bar line of every running job is printed periodically.
+with a ``checkpoint.pt`` is resumed from it; anything else starts fresh. Either only if the
+directory's ``run_config.json`` (the resolved config its trainer ran with) equals the config the
+job asks for now, apart from ``resume`` and the frame budget; a directory from another config is
+moved aside to ``<dir>.stale-<n>`` and the job starts fresh. Progress: the latest progress-bar
+line of every running job is printed periodically.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+from daof.train.checkpoint import RUN_CONFIG
+
 __all__ = ["TrainingJob", "run_jobs"]
+
+
+def _comparable(config: dict) -> dict:
+    """A run's config without what may differ between a run and the job that reuses it."""
+    config = {k: v for k, v in config.items() if k != "resume"}
+    if isinstance(config.get("collector"), dict):
+        config["collector"] = {k: v for k, v in config["collector"].items() if k != "total_frames"}
+    return config
 
 
 @dataclass
@@ -36,13 +52,39 @@ class TrainingJob:
     def finished(self) -> bool:
         if not self.summary_path.is_file() or not (self.output_dir / "best.pt").is_file():
             return False
-        return json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
+        done = json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
+        return done and self.config_matches()
 
-    def command(self) -> list[str]:
+    def requested_config(self) -> dict:
+        """The resolved config this job's command would train with (the recipe's ``--cfg job``)."""
+        cmd = [*self.command(with_resume=False), "--cfg", "job", "--resolve"]
+        out = subprocess.run(cmd, capture_output=True, text=True)
+        if out.returncode != 0:
+            raise RuntimeError(f"{self.name}: {self.script} rejects its overrides: {out.stderr.strip()[-300:]}")
+        return OmegaConf.to_container(OmegaConf.create(out.stdout))
+
+    def config_matches(self) -> bool:
+        """Whether the run in ``output_dir`` was started with the config this job asks for."""
+        path = self.output_dir / RUN_CONFIG
+        if not path.is_file():
+            return False
+        return _comparable(json.loads(path.read_text())) == _comparable(self.requested_config())
+
+    def set_aside_if_stale(self) -> Path | None:
+        """Move a run of another config out of the way (nothing is deleted); returns where it went."""
+        if not self.output_dir.is_dir() or not any(self.output_dir.iterdir()) or self.config_matches():
+            return None
+        k = 1
+        while (target := self.output_dir.with_name(f"{self.output_dir.name}.stale-{k}")).exists():
+            k += 1
+        shutil.move(str(self.output_dir), str(target))
+        return target
+
+    def command(self, with_resume: bool = True) -> list[str]:
         cmd = [sys.executable, str(self.script), *self.overrides]
         cmd += [f"collector.total_frames={self.total_frames}", f"output_dir={self.output_dir}"]
         checkpoint = self.output_dir / "checkpoint.pt"
-        if checkpoint.is_file():
+        if with_resume and checkpoint.is_file():
             cmd.append(f"resume={checkpoint}")
         return cmd
 
@@ -66,8 +108,11 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
     for job in jobs:
         if job.finished():
             log(f"  {job.name}: finished earlier, reusing {job.output_dir}")
-        else:
-            pending.append(job)
+            continue
+        stale = job.set_aside_if_stale()
+        if stale is not None:
+            log(f"  {job.name}: {job.output_dir} was trained with another config; moved to {stale}")
+        pending.append(job)
     running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
     failed = []
     last_status = time.monotonic()

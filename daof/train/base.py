@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
-from daof.train.checkpoint import atomic_save, capture_rng, load_checkpoint, restore_rng
+from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
 from envs.registry import make_system
 
@@ -39,6 +39,9 @@ class FilterTrainer:
         torch.manual_seed(int(cfg.seed))
         self.out = Path(cfg.output_dir)
         self.out.mkdir(parents=True, exist_ok=True)
+        # what experiments compare before they reuse or resume this directory (daof.evaluate.jobs)
+        resolved = OmegaConf.to_container(cfg, resolve=True)
+        (self.out / RUN_CONFIG).write_text(json.dumps(resolved, indent=2))
         self.system = make_system(cfg.system, cfg.scenario, **(cfg.get("overrides") or {}))
         net = cfg.network
         self.filter = LearnedFilter(

@@ -9,7 +9,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["capture_rng", "restore_rng", "atomic_save", "load_checkpoint"]
+__all__ = ["RUN_CONFIG", "capture_rng", "restore_rng", "atomic_save", "load_checkpoint"]
+
+#: file every trainer writes into its output directory: the resolved config it runs with
+RUN_CONFIG = "run_config.json"
 
 
 def capture_rng(extra_generators: dict[str, torch.Generator] | None = None) -> dict:

@@ -20,6 +20,7 @@ import math
 
 import torch
 from omegaconf import DictConfig
+from tensordict import TensorDictBase
 from torchrl._utils import timeit
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -209,6 +210,14 @@ class DSACTTrainer(FilterTrainer):
         self.updates += 1
         return out
 
+    def to_replay(self, batch: TensorDictBase) -> TensorDictBase:
+        """A collected batch as flat replay transitions: unused keys dropped, the start-up priority set."""
+        batch = batch.reshape(-1).exclude(*_DROP_KEYS)
+        if self.startup_priority > 0:
+            rho = startup_feature(batch["step"]).squeeze(-1)
+            batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * rho**2
+        return batch
+
     def set_learning_rates(self) -> float:
         """Actor and critic learning rates on a cosine from ``lr`` to ``optim.lr_final`` × lr over the budget.
 
@@ -234,10 +243,7 @@ class DSACTTrainer(FilterTrainer):
                 if self.frames >= total:
                     break
                 with timeit("collect"):
-                    batch = batch.reshape(-1).exclude(*_DROP_KEYS)
-                    if self.startup_priority > 0:
-                        rho = startup_feature(batch["step"]).squeeze(-1)
-                        batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * rho**2
+                    batch = self.to_replay(batch)
                     self.buffer.extend(batch)
                     self.frames += batch.numel()
                 metrics = {}

@@ -10,11 +10,12 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from daof.train.dsac import DSACTTrainer
-
 
 @hydra.main(config_path=".", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    # imported here so that `--cfg job` (how an experiment checks a finished run) stays fast
+    from daof.train.dsac import DSACTTrainer
+
     trainer = DSACTTrainer(cfg)
     if cfg.resume:
         trainer.resume(cfg.resume)

@@ -9,11 +9,12 @@ from __future__ import annotations
 import hydra
 from omegaconf import DictConfig
 
-from daof.train.supervised import SLFTrainer
-
 
 @hydra.main(config_path=".", config_name="slf", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    # imported here so that `--cfg job` (how an experiment checks a finished run) stays fast
+    from daof.train.supervised import SLFTrainer
+
     trainer = SLFTrainer(cfg)
     if cfg.resume:
         trainer.resume(cfg.resume)
