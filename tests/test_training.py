@@ -8,7 +8,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from daof.train.dsac import DSACTTrainer
+from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "veh2dof"
@@ -118,12 +118,20 @@ def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
     for version in ("v1", "v2"):
         trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / version, version=version))
         std = 0.4 * trainer.system.error_scale / trainer.filter.action_scale  # v1 acts in units of its bound
+        assert (std < MAX_EXPLORATION_STD).all()  # veh2dof's default is below the cap
         expected = float(torch.log(std * math.sqrt(2 * math.pi * math.e)).sum())
         assert trainer.loss.target_entropy == pytest.approx(expected)
+    # noise wider than the action range cannot be reached: each std is capped, in action units
+    wide = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "wide", **{"loss.exploration_std": 10.0}))
+    capped = math.log(MAX_EXPLORATION_STD * math.sqrt(2 * math.pi * math.e))
+    assert wide.loss.target_entropy == pytest.approx(2 * capped)
+    assert wide.loss.target_entropy < 2 * math.log(2.0)
     cfg = tiny_cfg("config.yaml", tmp_path / "fixed", **{"loss.target_entropy": -3.0})
     assert DSACTTrainer(cfg).loss.target_entropy == pytest.approx(-3.0)
     with pytest.raises(ValueError, match="exploration_std must be > 0"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"loss.exploration_std": 0.0}))
+    with pytest.raises(ValueError, match=r"target_entropy=1.5 is unreachable"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "high", **{"loss.target_entropy": 1.5}))
 
 
 def test_startup_schedules_of_a_dsac_run(tmp_path):

@@ -40,6 +40,8 @@ __all__ = ["DSACTTrainer"]
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
 _DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state"]
 _PRIORITY_KEY = "sample_priority"
+#: largest exploration std of the automatic entropy target, in units of the action's half-range
+MAX_EXPLORATION_STD = 0.3
 _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll")
 
 
@@ -116,15 +118,23 @@ class DSACTTrainer(FilterTrainer):
         (the tanh barely bends at the small corrections a trained filter makes):
         Σ_i log(√(2πe) · k · e_i / a_i), with a the state-unit size of one unit of action
         (``LearnedFilter.action_scale``: DAOF-v1 acts in units of its settled update bound).
-        ``loss.target_entropy`` set to a number overrides it.
+        Each std is capped at ``MAX_EXPLORATION_STD`` action units: the actions live in [−1, 1],
+        whose entropy is at most log 2 per dimension, and an unreachable target drives α up without
+        bound until the entropy term drowns the critic (veh14dof's increments: docs/experiment2.md).
+        ``loss.target_entropy`` set to a number overrides it (it must be below n · log 2).
         """
+        n = self.system.state_dim
         fixed = self.cfg.loss.get("target_entropy", "auto")
         if fixed != "auto":
+            if float(fixed) >= n * math.log(2.0):
+                raise ValueError(
+                    f"loss.target_entropy={fixed} is unreachable: actions in [-1, 1]^{n} have entropy < {n} log 2"
+                )
             return float(fixed)
         k = float(self.cfg.loss.get("exploration_std", 0.4))
         if k <= 0:
             raise ValueError(f"loss.exploration_std must be > 0, got {k}")
-        std = k * self.system.error_scale / self.filter.action_scale
+        std = (k * self.system.error_scale / self.filter.action_scale).clamp(max=MAX_EXPLORATION_STD)
         return float((std * math.sqrt(2 * math.pi * math.e)).log().sum())
 
     def _make_data(self) -> None:
