@@ -118,23 +118,25 @@ class DSACTTrainer(FilterTrainer):
         (the tanh barely bends at the small corrections a trained filter makes):
         Σ_i log(√(2πe) · k · e_i / a_i), with a the state-unit size of one unit of action
         (``LearnedFilter.action_scale``: DAOF-v1 acts in units of its settled update bound).
-        Each std is capped at ``MAX_EXPLORATION_STD`` action units: the actions live in [−1, 1],
-        whose entropy is at most log 2 per dimension, and an unreachable target drives α up without
-        bound until the entropy term drowns the critic (veh14dof's increments: docs/experiment2.md).
-        ``loss.target_entropy`` set to a number overrides it (it must be below n · log 2).
+        Each std is capped at ``MAX_EXPLORATION_STD`` times the action's half-range: an action in
+        [low, high] has entropy below Σ log(high − low), and an unreachable target drives α up
+        without bound until the entropy term drowns the critic (veh14dof's increments:
+        docs/experiment2.md). ``loss.target_entropy`` set to a number overrides it (it must be
+        below that bound).
         """
-        n = self.system.state_dim
+        width = self.filter.high - self.filter.low  # the actor's action range (2 for an update in [−1, 1])
         fixed = self.cfg.loss.get("target_entropy", "auto")
         if fixed != "auto":
-            if float(fixed) >= n * math.log(2.0):
+            most = float(width.log().sum())
+            if float(fixed) >= most:
                 raise ValueError(
-                    f"loss.target_entropy={fixed} is unreachable: actions in [-1, 1]^{n} have entropy < {n} log 2"
+                    f"loss.target_entropy={fixed} is unreachable: actions in this range have entropy < {most:.3g}"
                 )
             return float(fixed)
         k = float(self.cfg.loss.get("exploration_std", 0.4))
         if k <= 0:
             raise ValueError(f"loss.exploration_std must be > 0, got {k}")
-        std = (k * self.system.error_scale / self.filter.action_scale).clamp(max=MAX_EXPLORATION_STD)
+        std = torch.minimum(k * self.system.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
         return float((std * math.sqrt(2 * math.pi * math.e)).log().sum())
 
     def _make_data(self) -> None:
