@@ -16,28 +16,24 @@ import argparse
 import torch
 
 from daof.filters.learned import load_filter
+from daof.train.validation import rmse_per_state
 
 
 @torch.no_grad()
 def closed_loop_inputs(filt, runs: int, steps: int, seed: int) -> list[torch.Tensor]:
     """(window, x̂_{t−1}, u_{t−1}, t, x_t) of every step of fresh runs filtered by ``filt``."""
-    system = filt.system
-    data = system.simulate(runs, steps, seed)
+    data = filt.system.simulate(runs, steps, seed)
     y, u_prev, u = data["measurement"], data["prev_control"], data["control"]
-    layers = filt._inference_layers()
-    measured = filt.open_loop_frames(y, u, u_prev)
-    prev = system.prior.mean.expand(runs, -1).clone()
-    window, rows = None, []
-    for t in range(steps):
-        frame = torch.cat([prev, measured[:, t]], -1)
-        window = filt._first_window(frame) if window is None else torch.cat([window[:, filt.frame_dim :], frame], -1)
-        rows.append((window, prev, u_prev[:, t], torch.full((runs, 1), t + 1), data["state"][:, t]))
-        prev = filt._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)
+    rows = [
+        (window, prev, u_prev[:, t], torch.full((runs, 1), t + 1), data["state"][:, t])
+        for t, (window, prev, _) in enumerate(filt.stream_steps(y, u_prev, u))
+    ]
     return [torch.cat(parts, 0) for parts in zip(*rows)]
 
 
-def segment_rmse(err2: torch.Tensor, steps: slice) -> list[float]:
-    return [round(v, 5) for v in err2[:, steps].flatten(0, -2).mean(0).sqrt().tolist()]
+def segment_rmse(estimates: torch.Tensor, truth: torch.Tensor, steps: slice = slice(None)) -> list[float]:
+    """Pooled RMSE per state over the steps ``steps`` of every run."""
+    return [round(v, 5) for v in rmse_per_state(estimates[:, steps], truth[:, steps]).tolist()]
 
 
 def main() -> None:
@@ -63,42 +59,40 @@ def main() -> None:
                 module.reset_parameters()
     validation = system.simulate(20, 500, 9100)
 
+    truth = validation["state"]
+
     def validate() -> torch.Tensor:
         filt.eval()
-        err2 = (filt.run(validation) - validation["state"]).pow(2)
+        estimates = filt.run(validation)
         filt.train()
-        return err2
+        return estimates
 
-    print("start", segment_rmse(validate(), slice(None)), flush=True)
+    print("start", segment_rmse(validate(), truth), flush=True)
     weights = 1.0 / system.error_scale**2
     optim = torch.optim.Adam(filt.policy.parameters(), lr=args.lr)
     for it in range(args.iterations):
         window, prev, u_prev, step, state = closed_loop_inputs(filt, args.runs, args.steps, 1000 + it)
         for _ in range(args.updates):
             i = torch.randint(window.shape[0], (args.batch,))
-            loc, _ = filt.policy(window[i], step[i])
-            if filt.acts_by_update:
-                estimate = filt._add_prediction(torch.tanh(loc), prev[i], u_prev[i], step[i])
-            else:
-                estimate = filt.low + (filt.high - filt.low) * (torch.tanh(loc) + 1) / 2
+            estimate = filt.estimate(window[i], prev[i], u_prev[i], step[i])  # differentiable in the weights
             loss = ((estimate - state[i]).pow(2) * weights).sum(-1).mean()
             optim.zero_grad()
             loss.backward()
             optim.step()
         if (it + 1) % 10 == 0:
-            print(it + 1, segment_rmse(validate(), slice(None)), flush=True)
-    err2 = validate()
+            print(it + 1, segment_rmse(validate(), truth), flush=True)
+    estimates = validate()
     print(
         "all",
-        segment_rmse(err2, slice(None)),
+        segment_rmse(estimates, truth),
         "t=1",
-        segment_rmse(err2, slice(0, 1)),
+        segment_rmse(estimates, truth, slice(0, 1)),
         "t=2",
-        segment_rmse(err2, slice(1, 2)),
+        segment_rmse(estimates, truth, slice(1, 2)),
         "t<20",
-        segment_rmse(err2, slice(0, 19)),
+        segment_rmse(estimates, truth, slice(0, 19)),
         "t>=50",
-        segment_rmse(err2, slice(49, None)),
+        segment_rmse(estimates, truth, slice(49, None)),
     )
 
 

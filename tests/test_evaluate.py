@@ -308,7 +308,7 @@ def test_a_run_of_another_config_is_set_aside_not_reused(tmp_path):
     (job.output_dir / "summary.json").write_text(json.dumps({"frames": 100}))
     (job.output_dir / "best.pt").write_bytes(b"")
     assert not job.finished()  # no record of its config: not trusted
-    (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config()))
+    (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config))
     assert job.finished() and job.set_aside_if_stale() is None
     assert TrainingJob("SLF", script, job.output_dir, 50, ["window=4"]).finished()  # the budget may differ
     changed = TrainingJob("SLF", script, job.output_dir, 100, ["window=4", "optim.lr=1e-3"])

@@ -11,6 +11,7 @@ line of every running job is printed periodically.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -55,8 +56,9 @@ class TrainingJob:
         done = json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
         return done and self.config_matches()
 
+    @functools.cached_property
     def requested_config(self) -> dict:
-        """The resolved config this job's command would train with (the recipe's ``--cfg job``)."""
+        """The resolved config this job's command would train with (the recipe's ``--cfg job``; asked once)."""
         cmd = [*self.command(with_resume=False), "--cfg", "job", "--resolve"]
         out = subprocess.run(cmd, capture_output=True, text=True)
         if out.returncode != 0:
@@ -68,7 +70,7 @@ class TrainingJob:
         path = self.output_dir / RUN_CONFIG
         if not path.is_file():
             return False
-        return _comparable(json.loads(path.read_text())) == _comparable(self.requested_config())
+        return _comparable(json.loads(path.read_text())) == _comparable(self.requested_config)
 
     def set_aside_if_stale(self) -> Path | None:
         """Move a run of another config out of the way (nothing is deleted); returns where it went."""

@@ -484,21 +484,23 @@ class LearnedFilter(nn.Module, Filter):
 
     def _stream(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Step-by-step filtering (closed loop; for the SLF the streaming form of its windows)."""
-        s = self.system
-        runs, steps = y.shape[:2]
+        out = [estimate for _, _, estimate in self.stream_steps(y, u_prev, u)]
+        return torch.stack(out, 1) if out else torch.empty(y.shape[0], 0, self.system.state_dim, device=y.device)
+
+    def stream_steps(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        """Yield (h_t, x̂_{t−1}, x̂_t) for t = 1..T of step-by-step filtering of validated [runs, steps] data."""
         layers = self._inference_layers()
         measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]
-        prev = s.prior.mean.to(y.device).expand(runs, -1).clone()
+        prev = self.system.prior.mean.to(y.device).expand(y.shape[0], -1).clone()
         width = self.frame_dim
-        out = []
         window = None
-        for t in range(steps):
+        for t in range(y.shape[1]):
             frame = torch.cat([prev, measured[:, t]], -1) if self.closed_loop else measured[:, t]
             # slide the window by one frame; right after the reset it is frame 1 behind N − 1 pads
             window = self._first_window(frame) if window is None else torch.cat([window[:, width:], frame], -1)
-            prev = self._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)
-            out.append(prev)
-        return torch.stack(out, 1) if out else torch.empty(runs, 0, s.state_dim, device=y.device)
+            estimate = self._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)
+            yield window, prev, estimate
+            prev = estimate
 
     def _first_window(self, frame: torch.Tensor) -> torch.Tensor:
         """h_1: the first frame behind N − 1 padding frames, as the env's ``CatFrames`` pads it."""
