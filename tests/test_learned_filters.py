@@ -45,6 +45,27 @@ def test_offline_run_equals_env_rollout(kind, padding):
     assert (second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all()
 
 
+def test_linear_skip_is_zero_at_start_and_folded_exactly_into_the_fast_path():
+    """``linear_skip``: loc = MLP(features) + W·features; the folded filter path computes the same."""
+    f = small("DAOF-v1", linear_skip=True)
+    plain = small("DAOF-v1")
+    plain.load_state_dict({k: v for k, v in f.state_dict().items() if not k.startswith("policy.skip")})
+    data = f.system.simulate(3, 15, seed=11)
+    torch.testing.assert_close(f.run(data), plain.run(data), rtol=0, atol=0)  # W = 0 at initialisation
+    with torch.no_grad():
+        f.policy.skip.weight.normal_(0.0, 0.3)
+        f.policy.skip.bias.normal_(0.0, 0.3)
+    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15)
+    with torch.no_grad():
+        td = env.rollout(15, f.filter_module(), break_when_any_done=False)
+        loc, _ = f.policy(td["history"], td["step"])
+    torch.testing.assert_close(f.run(data), td["action"], rtol=0, atol=0)
+    assert not torch.equal(f.run(data), plain.run(data))
+    pred = f.system.f(td["prev_estimate"], td["prev_control"])
+    bound = f.correction_scale[td["step"].squeeze(-1).clamp(max=SCHEDULE_STEPS) - 1]
+    torch.testing.assert_close(td["action"], torch.clamp(pred + bound * torch.tanh(loc), f.state_low, f.state_high), atol=1e-6, rtol=1e-5)
+
+
 def test_exploration_policy_deterministic_mode_is_the_filter():
     """The collector's policy in deterministic mode is the deterministic filter (squashed loc)."""
     f = small("DAOF-v1")

@@ -223,3 +223,42 @@ def test_a_critic_per_state_learns_on_the_reward_terms(tmp_path):
     torch.testing.assert_close(batch["next", "reward_per_state"].sum(-1, keepdim=True), batch["next", "reward"])
     assert trainer.loss.sigma_bar.shape == (2, trainer.system.state_dim)
     assert bool((trainer.loss.sigma_bar > 0).all()) and trainer.updates > 0
+
+
+@pytest.mark.parametrize("per_state", [False, True])
+def test_a_quadratic_critic_is_a_concave_quadratic_in_the_action_and_trains(tmp_path, per_state):
+    """``network.critic_form=quadratic``: μ_k = V_k(h) − Σ_{i∈k} p_i(h)(a_i − m_i(h))², p > 0.
+
+    Checked through the loss's own critic call: μ along each action axis is a parabola opening
+    down (second differences equal and negative), the per-state terms each depend on their own
+    action only (third differences vanish), and a short run updates it."""
+    cfg = tiny_cfg(
+        "config.yaml",
+        tmp_path,
+        **{"collector.total_frames": 300, "loss.critic_per_state": per_state, "network.critic_form": "quadratic"},
+    )
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    assert trainer.updates > 0
+    batch = trainer.buffer.sample()[:8]
+    key, n = trainer.filter.action_key, trainer.system.state_dim
+    for i in range(n):
+        mus = []
+        for a_i in (-0.5, 0.0, 0.5, 1.0):
+            td = batch.clone()
+            td[key][..., i] = a_i  # DAOF-v1's action is the unit update: the critic reads it as is
+            mu, sigma = trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)
+            mus.append(mu)
+        second = mus[0] - 2 * mus[1] + mus[2]  # = −2·0.25·p_i for the terms holding action i
+        moved = second.abs() > 1e-6
+        assert (second[moved] < 0).all()
+        held = torch.arange(second.shape[-1]) == i if per_state else torch.ones(1, dtype=torch.bool)
+        assert moved[..., held].all() and not moved[..., ~held].any()
+        third = mus[3] - 3 * mus[2] + 3 * mus[1] - mus[0]  # 0 for a quadratic, not for an MLP's μ
+        torch.testing.assert_close(third, torch.zeros_like(third), atol=1e-5, rtol=0)
+
+
+def test_an_unknown_critic_form_is_refused(tmp_path):
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "cubic"})
+    with pytest.raises(ValueError, match="critic form must be one of"):
+        DSACTTrainer(cfg)

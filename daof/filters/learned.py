@@ -35,6 +35,8 @@ __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
 CORRECTION_BOUNDS = ("kalman", "process")
 V2_ACTIONS = ("estimate", "increment")
+#: what a learned filter reads for a missing measurement channel (``LearnedFilter.missing_fill``)
+MISSING_FILLS = ("hold", "prediction")
 #: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
 SCHEDULE_STEPS = 50
 #: window key an SLF reads (measurements and controls only, no fed-back estimates)
@@ -78,6 +80,9 @@ class FilterConfig:
     #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
     #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
     v2_action: str = "estimate"
+    #: the policy's loc also gets a linear map of its input features (zero at initialisation):
+    #: a Kalman-type update K_t ν_t is then one linear layer, the MLP learns what is not linear
+    linear_skip: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -139,6 +144,7 @@ class PolicyNet(nn.Module):
         innovation=None,
         innovation_dim: int = 0,
         gelu_approximate: str = "none",
+        linear_skip: bool = False,
     ):
         super().__init__()
         self.register_buffer("input_loc", torch.zeros(in_features))
@@ -158,6 +164,11 @@ class PolicyNet(nn.Module):
             activation_class=nn.GELU,
             activation_kwargs={"approximate": gelu_approximate},
         )
+        self.skip = None
+        if linear_skip:
+            self.skip = nn.Linear(self.feature_dim, out_dim)
+            nn.init.zeros_(self.skip.weight)
+            nn.init.zeros_(self.skip.bias)
 
     def normalize(self, window: torch.Tensor) -> torch.Tensor:
         return (window - self.input_loc) / self.input_scale
@@ -172,7 +183,10 @@ class PolicyNet(nn.Module):
         return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
 
     def forward(self, window: torch.Tensor, step=None):
-        loc, log_std = self.mlp(self.features(window, step)).chunk(2, -1)
+        features = self.features(window, step)
+        loc, log_std = self.mlp(features).chunk(2, -1)
+        if self.skip is not None:
+            loc = loc + self.skip(features)
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
 
@@ -241,6 +255,7 @@ class LearnedFilter(nn.Module, Filter):
             self.innovation if self.innovation_input else None,
             s.measurement_dim,
             config.gelu_approximate,
+            config.linear_skip,
         )
         if self.acts_by_update:
             # the actor's action is the update in units of its bound b_t; DAOF-v1's b_t starts as
@@ -259,6 +274,26 @@ class LearnedFilter(nn.Module, Filter):
         # every estimate stays in the system's plausible state range (the env's action spec)
         self.register_buffer("state_low", s.state_low.clone().float())
         self.register_buffer("state_high", s.state_high.clone().float())
+        self.missing_fill = "hold"
+
+    # ----------------------------------------------------------------- missing measurements
+    @property
+    def missing_fill(self) -> str:
+        """What a missing (NaN) measurement channel reads as (docs/missing_data.md).
+
+        "hold": its last present value (``hold_last_value``); "prediction" (DAOF-v1 only): the
+        predicted measurement g(f(x̂_{t−1}, u_{t−1}), u_t), so the channel's innovation is 0, as a
+        Kalman filter skips the update of a missing channel.
+        """
+        return self._missing_fill
+
+    @missing_fill.setter
+    def missing_fill(self, value: str) -> None:
+        if value not in MISSING_FILLS:
+            raise ValueError(f"missing_fill must be one of {MISSING_FILLS}, got {value!r}")
+        if value == "prediction" and self.config.kind != "DAOF-v1":
+            raise ValueError(f"missing_fill='prediction' needs a model predictor: DAOF-v1 only, not {self.config.kind}")
+        self._missing_fill = value
 
     # ----------------------------------------------------------------- shapes
     @property
@@ -430,17 +465,22 @@ class LearnedFilter(nn.Module, Filter):
         are kept (with the squash onto the action bounds, None for DAOF-v1's ±1), so one filter
         step costs four ``linear`` calls and three GELUs. The first entry
         also holds the weight columns of ν_t and of ρ_t (each None where unused); they enter as a
-        per-step bias. Rebuilt on every ``run`` (cheap), so it always
+        per-step bias. A linear skip's rows are appended to the first layer's (its last entry says
+        where they start). Rebuilt on every ``run`` (cheap), so it always
         matches the current weights.
         """
         policy = self.policy
         linears = [m for m in policy.mlp if isinstance(m, nn.Linear)]
         first, last, n = linears[0], linears[-1], self.system.state_dim
         width, m = policy.input_loc.numel(), policy.innovation_dim
-        w0 = first.weight[:, :width] / policy.input_scale
-        w_nu = first.weight[:, width : width + m] if m else None
-        w_rho = first.weight[:, width + m] if self.startup_input else None
-        layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
+        weight, bias = first.weight, first.bias
+        if policy.skip is not None:  # its rows ride along with the first layer's, split off before the GELU
+            weight, bias = torch.cat([weight, policy.skip.weight]), torch.cat([bias, policy.skip.bias])
+        w0 = weight[:, :width] / policy.input_scale
+        w_nu = weight[:, width : width + m] if m else None
+        w_rho = weight[:, width + m] if self.startup_input else None
+        cells = first.out_features if policy.skip is not None else None
+        layers = [(w0, bias - w0 @ policy.input_loc, w_nu, w_rho, cells)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
         # a = mid + half · tanh(u) maps onto the action's bounds; DAOF-v1's are ±1 (a = tanh(u))
         squash = None if self.acts_by_update else ((self.high + self.low) / 2, (self.high - self.low) / 2)
@@ -448,7 +488,7 @@ class LearnedFilter(nn.Module, Filter):
 
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
-        (w0, b0, w_nu, w_rho), *hidden = layers[:-1]
+        (w0, b0, w_nu, w_rho, cells), *hidden = layers[:-1]
         by_update = self.acts_by_update
         prediction = self.predict(prev_estimate, prev_control) if by_update else None
         # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
@@ -459,11 +499,16 @@ class LearnedFilter(nn.Module, Filter):
         if not isinstance(rho, float) or rho > 0.0:  # a settled streaming step skips it (+0 is exact)
             b0 = b0 + rho * w_rho
         gelu = self.policy.gelu_approximate
-        h = nn.functional.gelu(nn.functional.linear(window, w0, b0), approximate=gelu)
+        h = nn.functional.linear(window, w0, b0)
+        skip = None
+        if cells is not None:
+            h, skip = h[..., :cells], h[..., cells:]
+        h = nn.functional.gelu(h, approximate=gelu)
         for weight, bias in hidden:
             h = nn.functional.gelu(nn.functional.linear(h, weight, bias), approximate=gelu)
         weight, bias, squash = layers[-1]
-        out = torch.tanh(nn.functional.linear(h, weight, bias))  # tanh of the pre-squash loc
+        loc = nn.functional.linear(h, weight, bias)
+        out = torch.tanh(loc if skip is None else loc + skip)  # tanh of the pre-squash loc
         if squash is not None:
             out = torch.addcmul(squash[0], squash[1], out)
         if by_update:
@@ -490,12 +535,19 @@ class LearnedFilter(nn.Module, Filter):
     def stream_steps(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
         """Yield (h_t, x̂_{t−1}, x̂_t) for t = 1..T of step-by-step filtering of validated [runs, steps] data."""
         layers = self._inference_layers()
-        measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]
+        measured = self.open_loop_frames(y, u, u_prev)  # [runs, steps, F − n]: y_t first
+        gaps = torch.isnan(y) if self.missing_fill == "prediction" else None
+        gappy = gaps.any(-1).any(0).tolist() if gaps is not None else None
         prev = self.system.prior.mean.to(y.device).expand(y.shape[0], -1).clone()
         width = self.frame_dim
         window = None
         for t in range(y.shape[1]):
-            frame = torch.cat([prev, measured[:, t]], -1) if self.closed_loop else measured[:, t]
+            present = measured[:, t]
+            if gappy is not None and gappy[t]:  # a missing channel reads as its prediction: ν_t = 0 there
+                m = self.system.measurement_dim
+                predicted = self.system.g(self.predict(prev, u_prev[:, t]), u[:, t])
+                present = torch.cat([torch.where(gaps[:, t], predicted, present[:, :m]), present[:, m:]], -1)
+            frame = torch.cat([prev, present], -1) if self.closed_loop else present
             # slide the window by one frame; right after the reset it is frame 1 behind N − 1 pads
             window = self._first_window(frame) if window is None else torch.cat([window[:, width:], frame], -1)
             estimate = self._fast_estimate(layers, window, prev, u_prev[:, t], t + 1)

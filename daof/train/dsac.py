@@ -85,7 +85,8 @@ class DSACTTrainer(FilterTrainer):
         per_state = bool(cfg.loss.get("critic_per_state", False))
         # a critic per state: the reward is a sum of per-state terms, each learned on its own
         terms = self.system.state_dim if per_state else 1
-        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms)
+        form = str(cfg.network.get("critic_form", "mlp"))
+        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form)
         self.loss = DSACTLoss(
             self.filter.stochastic_actor(),
             self.critic,

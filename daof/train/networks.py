@@ -9,7 +9,10 @@ from torchrl.modules import MLP
 
 from daof.filters.learned import LearnedFilter
 
-__all__ = ["FilterCritic", "make_critic"]
+__all__ = ["CRITIC_FORMS", "FilterCritic", "make_critic"]
+
+#: "mlp": Q from an MLP on (h, a) | "quadratic": μ = V(h) − Σ_i p_i(h)(a_i − m_i(h))² (NAF-style)
+CRITIC_FORMS = ("mlp", "quadratic")
 
 
 class FilterCritic(nn.Module):
@@ -17,15 +20,31 @@ class FilterCritic(nn.Module):
 
     The window uses the filter's own input normalisation (shared buffers, not copied) and the
     action is mapped to [−1, 1] by the actor's bounds, so the critic sees O(1) inputs.
+
+    ``form="quadratic"`` makes the mean quadratic in the action, as in NAF (Gu et al., 2016):
+    μ_k = V_k(h) − Σ_{i∈k} p_i(h)(a_i − m_i(h))², p_i = softplus > 0, with the raw scale from h
+    alone. For a reward −Σ_i W_i(x_i − x̂_i)² with x̂ affine in a (DAOF-v1's update, DAOF-v2's
+    increment) and γ = 0 this is the exact form of Q, so the critic's argmax m(h) is never
+    misranked by the shape of the fit; the sum over i∈k is over every state (one reward term)
+    or over state k alone (a critic per state).
     """
 
-    def __init__(self, actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1):
+    def __init__(
+        self, actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1, form: str = "mlp"
+    ):
         super().__init__()
-        self._actor = [actor]  # a reference, not a submodule: its weights are not the critic's
+        if form not in CRITIC_FORMS:
+            raise ValueError(f"critic form must be one of {CRITIC_FORMS}, got {form!r}")
         n = actor.system.state_dim
+        if reward_terms not in (1, n):
+            raise ValueError(f"reward_terms must be 1 or the state dim {n}, got {reward_terms}")
+        self._actor = [actor]  # a reference, not a submodule: its weights are not the critic's
+        self.form = form
+        self.reward_terms = reward_terms
+        quadratic = form == "quadratic"
         self.mlp = MLP(
-            in_features=actor.policy.feature_dim + n,
-            out_features=2 * reward_terms,
+            in_features=actor.policy.feature_dim + (0 if quadratic else n),
+            out_features=2 * reward_terms + (2 * n if quadratic else 0),
             depth=depth,
             num_cells=num_cells,
             activation_class=nn.GELU,
@@ -35,11 +54,20 @@ class FilterCritic(nn.Module):
         actor = self._actor[0]
         h = actor.policy.features(window, step)
         a = (action - (actor.high + actor.low) / 2) / ((actor.high - actor.low) / 2)
-        return self.mlp(torch.cat([h, a], -1))
+        if self.form == "mlp":
+            return self.mlp(torch.cat([h, a], -1))
+        K, n = self.reward_terms, a.shape[-1]
+        value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
+        penalty = nn.functional.softplus(curvature) * (a - best).pow(2)
+        if K == 1:
+            penalty = penalty.sum(-1, keepdim=True)
+        return torch.stack([value - penalty, raw_scale], -1).flatten(-2)
 
 
-def make_critic(actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1) -> TensorDictModule:
+def make_critic(
+    actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1, form: str = "mlp"
+) -> TensorDictModule:
     """Critic reading (h_t^N, t where the actor reads it, the action key), writing ``state_action_value`` [.., 2K]."""
-    net = FilterCritic(actor, num_cells, depth, reward_terms)
+    net = FilterCritic(actor, num_cells, depth, reward_terms, form)
     in_keys = dict(zip(["window", "step"], actor.policy_in_keys)) | {"action": actor.action_key}
     return TensorDictModule(net, in_keys=in_keys, out_keys=["state_action_value"])
