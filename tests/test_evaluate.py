@@ -83,10 +83,19 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
     assert [r["window"] for r in results["window_study"]] == [1, 20]
     assert "| DAOF-v1 |" in (report / "report.md").read_text()
 
-    second = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    # again, with the dropout study: trainings and the main study are reused, the gappy one is new
+    gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps
+    second = subprocess.run(cmd + gaps, capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert second.returncode == 0, second.stderr[-3000:]
     assert second.stdout.count("finished earlier, reusing") == 4
     assert second.stdout.count("reused finished result") == 9
+    gappy = json.loads((report / "dropout" / "results.json").read_text())
+    assert set(gappy["filters"]) == expected and gappy["dropout"]["p"] == 0.1
+    assert all(0.05 < m < 0.5 for m in gappy["dropout"]["missing_fraction"])
+    for name, row in gappy["filters"].items():
+        assert all(math.isfinite(v) for v in row["rmse"]), name
+        assert row["rmse"] != results["filters"][name]["rmse"], name  # the gaps changed every filter's estimates
+    assert "Sensor dropout" in (report / "dropout" / "report.md").read_text()
 
 
 def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):

@@ -45,27 +45,6 @@ def test_offline_run_equals_env_rollout(kind, padding):
     assert (second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all()
 
 
-def test_linear_skip_is_zero_at_start_and_folded_exactly_into_the_fast_path():
-    """``linear_skip``: loc = MLP(features) + W·features; the folded filter path computes the same."""
-    f = small("DAOF-v1", linear_skip=True)
-    plain = small("DAOF-v1")
-    plain.load_state_dict({k: v for k, v in f.state_dict().items() if not k.startswith("policy.skip")})
-    data = f.system.simulate(3, 15, seed=11)
-    torch.testing.assert_close(f.run(data), plain.run(data), rtol=0, atol=0)  # W = 0 at initialisation
-    with torch.no_grad():
-        f.policy.skip.weight.normal_(0.0, 0.3)
-        f.policy.skip.bias.normal_(0.0, 0.3)
-    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15)
-    with torch.no_grad():
-        td = env.rollout(15, f.filter_module(), break_when_any_done=False)
-        loc, _ = f.policy(td["history"], td["step"])
-    torch.testing.assert_close(f.run(data), td["action"], rtol=0, atol=0)
-    assert not torch.equal(f.run(data), plain.run(data))
-    pred = f.system.f(td["prev_estimate"], td["prev_control"])
-    bound = f.correction_scale[td["step"].squeeze(-1).clamp(max=SCHEDULE_STEPS) - 1]
-    torch.testing.assert_close(td["action"], torch.clamp(pred + bound * torch.tanh(loc), f.state_low, f.state_high), atol=1e-6, rtol=1e-5)
-
-
 def test_exploration_policy_deterministic_mode_is_the_filter():
     """The collector's policy in deterministic mode is the deterministic filter (squashed loc)."""
     f = small("DAOF-v1")
@@ -245,12 +224,45 @@ def test_hold_last_value_fills_gaps_with_the_last_present_value():
     assert hold_last_value(held, torch.zeros(2)) is held  # complete data passes through untouched
 
 
-@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "SLF"])
-def test_learned_filters_stay_finite_under_dropout(kind):
+@pytest.mark.parametrize("kind,fill", [("DAOF-v1", "prediction"), ("DAOF-v1", "hold"), ("DAOF-v2", "hold"), ("SLF", "hold")])
+def test_learned_filters_stay_finite_under_dropout(kind, fill):
     """NaN measurements (sensor dropout) never make a learned filter's estimate non-finite."""
     f = small(kind)
+    f.missing_fill = fill
     data = f.system.simulate(3, 60, seed=2)
     data["measurement"][:, ::3, 0] = float("nan")
     data["measurement"][1, 10:40, 1] = float("nan")
     data["measurement"][2, :5] = float("nan")
     assert torch.isfinite(f.run(data)).all() and torch.isfinite(f.run_streaming(data)).all()
+
+
+def test_daof_v1_reads_a_missing_channel_as_its_prediction():
+    """The default for DAOF-v1: a missing y_t,j enters the window as g(f(x̂_{t−1}, u_{t−1}), u_t)_j
+    (innovation 0 there); present channels and the steps before the first gap are untouched."""
+    f = small("DAOF-v1")
+    assert f.missing_fill == "prediction" and small("SLF").missing_fill == "hold"
+    data = f.system.simulate(3, 30, seed=4)
+    gappy = data.clone()
+    gappy["measurement"][:, 10:, 1] = float("nan")
+    gappy["measurement"][0, 20, 0] = float("nan")
+    complete = [step for step in f.stream_steps(data["measurement"], data["prev_control"], data["control"])]
+    steps = list(f.stream_steps(gappy["measurement"], gappy["prev_control"], gappy["control"]))
+    n, m = f.system.state_dim, f.system.measurement_dim
+    for t, (window, prev, estimate) in enumerate(steps):
+        y = window[:, -f.frame_dim :][:, n : n + m]
+        predicted = f.system.g(f.predict(prev, gappy["prev_control"][:, t]), gappy["control"][:, t])
+        missing = torch.isnan(gappy["measurement"][:, t])
+        torch.testing.assert_close(y[missing], predicted[missing], rtol=0, atol=0)
+        torch.testing.assert_close(y[~missing], gappy["measurement"][:, t][~missing], rtol=0, atol=0)
+        if t < 10:
+            torch.testing.assert_close(estimate, complete[t][2], rtol=0, atol=0)
+    f.missing_fill = "hold"
+    held = f.run(gappy)
+    assert not torch.equal(held[:, 10:], torch.stack([e for _, _, e in steps], 1)[:, 10:])
+
+
+def test_prediction_fill_needs_a_model_predictor():
+    with pytest.raises(ValueError, match="DAOF-v1 only"):
+        small("DAOF-v2").missing_fill = "prediction"
+    with pytest.raises(ValueError, match="missing_fill must be one of"):
+        small("DAOF-v1").missing_fill = "zeros"

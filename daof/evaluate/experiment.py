@@ -100,12 +100,14 @@ def run_trained_study(
     expect: dict | Callable[[str], dict] | None = None,
     timing_threads: int = 1,
     reference: str = ORACLE,
+    dropout=None,
     log=print,
 ) -> tuple[Study, dict]:
     """The study of ``classical`` filters (name -> filter) and every job's best checkpoint after them.
 
     Learned filters are cached under a digest of their checkpoint (``checkpoint_fingerprint``), so
-    a retrained filter is never scored from a stale cache entry. Returns the study and every filter.
+    a retrained filter is never scored from a stale cache entry. ``dropout`` (a ``Dropout``) runs
+    the study on the same data with those measurement gaps. Returns the study and every filter.
     """
     filters = dict(classical or {})
     clash = sorted(set(filters) & set(jobs))
@@ -124,6 +126,7 @@ def run_trained_study(
         log=log,
         versions=versions,
         reference=reference,
+        dropout=dropout,
     )
     return study, filters
 

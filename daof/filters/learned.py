@@ -80,9 +80,6 @@ class FilterConfig:
     #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
     #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
     v2_action: str = "estimate"
-    #: the policy's loc also gets a linear map of its input features (zero at initialisation):
-    #: a Kalman-type update K_t ν_t is then one linear layer, the MLP learns what is not linear
-    linear_skip: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -144,7 +141,6 @@ class PolicyNet(nn.Module):
         innovation=None,
         innovation_dim: int = 0,
         gelu_approximate: str = "none",
-        linear_skip: bool = False,
     ):
         super().__init__()
         self.register_buffer("input_loc", torch.zeros(in_features))
@@ -164,11 +160,6 @@ class PolicyNet(nn.Module):
             activation_class=nn.GELU,
             activation_kwargs={"approximate": gelu_approximate},
         )
-        self.skip = None
-        if linear_skip:
-            self.skip = nn.Linear(self.feature_dim, out_dim)
-            nn.init.zeros_(self.skip.weight)
-            nn.init.zeros_(self.skip.bias)
 
     def normalize(self, window: torch.Tensor) -> torch.Tensor:
         return (window - self.input_loc) / self.input_scale
@@ -183,10 +174,7 @@ class PolicyNet(nn.Module):
         return torch.cat(parts, -1) if len(parts) > 1 else parts[0]
 
     def forward(self, window: torch.Tensor, step=None):
-        features = self.features(window, step)
-        loc, log_std = self.mlp(features).chunk(2, -1)
-        if self.skip is not None:
-            loc = loc + self.skip(features)
+        loc, log_std = self.mlp(self.features(window, step)).chunk(2, -1)
         return loc, log_std.clamp(-20.0, 0.5).exp()
 
 
@@ -255,7 +243,6 @@ class LearnedFilter(nn.Module, Filter):
             self.innovation if self.innovation_input else None,
             s.measurement_dim,
             config.gelu_approximate,
-            config.linear_skip,
         )
         if self.acts_by_update:
             # the actor's action is the update in units of its bound b_t; DAOF-v1's b_t starts as
@@ -274,7 +261,9 @@ class LearnedFilter(nn.Module, Filter):
         # every estimate stays in the system's plausible state range (the env's action spec)
         self.register_buffer("state_low", s.state_low.clone().float())
         self.register_buffer("state_high", s.state_high.clone().float())
-        self.missing_fill = "hold"
+        # reading the prediction beats holding the last value on every gap pattern measured
+        # (benchmarks/missing_data.py, docs/missing_data.md); the others have no model to predict with
+        self.missing_fill = "prediction" if config.kind == "DAOF-v1" else "hold"
 
     # ----------------------------------------------------------------- missing measurements
     @property
@@ -465,22 +454,17 @@ class LearnedFilter(nn.Module, Filter):
         are kept (with the squash onto the action bounds, None for DAOF-v1's ±1), so one filter
         step costs four ``linear`` calls and three GELUs. The first entry
         also holds the weight columns of ν_t and of ρ_t (each None where unused); they enter as a
-        per-step bias. A linear skip's rows are appended to the first layer's (its last entry says
-        where they start). Rebuilt on every ``run`` (cheap), so it always
+        per-step bias. Rebuilt on every ``run`` (cheap), so it always
         matches the current weights.
         """
         policy = self.policy
         linears = [m for m in policy.mlp if isinstance(m, nn.Linear)]
         first, last, n = linears[0], linears[-1], self.system.state_dim
         width, m = policy.input_loc.numel(), policy.innovation_dim
-        weight, bias = first.weight, first.bias
-        if policy.skip is not None:  # its rows ride along with the first layer's, split off before the GELU
-            weight, bias = torch.cat([weight, policy.skip.weight]), torch.cat([bias, policy.skip.bias])
-        w0 = weight[:, :width] / policy.input_scale
-        w_nu = weight[:, width : width + m] if m else None
-        w_rho = weight[:, width + m] if self.startup_input else None
-        cells = first.out_features if policy.skip is not None else None
-        layers = [(w0, bias - w0 @ policy.input_loc, w_nu, w_rho, cells)]
+        w0 = first.weight[:, :width] / policy.input_scale
+        w_nu = first.weight[:, width : width + m] if m else None
+        w_rho = first.weight[:, width + m] if self.startup_input else None
+        layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
         # a = mid + half · tanh(u) maps onto the action's bounds; DAOF-v1's are ±1 (a = tanh(u))
         squash = None if self.acts_by_update else ((self.high + self.low) / 2, (self.high - self.low) / 2)
@@ -488,7 +472,7 @@ class LearnedFilter(nn.Module, Filter):
 
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:
         """``estimate`` on pre-folded layers (``_run`` folds them once per trajectory)."""
-        (w0, b0, w_nu, w_rho, cells), *hidden = layers[:-1]
+        (w0, b0, w_nu, w_rho), *hidden = layers[:-1]
         by_update = self.acts_by_update
         prediction = self.predict(prev_estimate, prev_control) if by_update else None
         # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
@@ -499,16 +483,11 @@ class LearnedFilter(nn.Module, Filter):
         if not isinstance(rho, float) or rho > 0.0:  # a settled streaming step skips it (+0 is exact)
             b0 = b0 + rho * w_rho
         gelu = self.policy.gelu_approximate
-        h = nn.functional.linear(window, w0, b0)
-        skip = None
-        if cells is not None:
-            h, skip = h[..., :cells], h[..., cells:]
-        h = nn.functional.gelu(h, approximate=gelu)
+        h = nn.functional.gelu(nn.functional.linear(window, w0, b0), approximate=gelu)
         for weight, bias in hidden:
             h = nn.functional.gelu(nn.functional.linear(h, weight, bias), approximate=gelu)
         weight, bias, squash = layers[-1]
-        loc = nn.functional.linear(h, weight, bias)
-        out = torch.tanh(loc if skip is None else loc + skip)  # tanh of the pre-squash loc
+        out = torch.tanh(nn.functional.linear(h, weight, bias))  # tanh of the pre-squash loc
         if squash is not None:
             out = torch.addcmul(squash[0], squash[1], out)
         if by_update:

@@ -59,7 +59,6 @@ class FilterTrainer:
                 innovation_input=bool(net.get("innovation_input", True)),
                 window_padding=str(net.get("window_padding", "same")),
                 v2_action=str(net.get("v2_action", "estimate")),
-                linear_skip=bool(net.get("linear_skip", False)),
             ),
             self.system,
         )

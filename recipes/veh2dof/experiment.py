@@ -24,7 +24,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, open_dict
 
-from daof.evaluate import run_study
+from daof.evaluate import Dropout, run_study
 from daof.evaluate.experiment import (
     learning_curves,
     run_trained_study,
@@ -144,9 +144,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         "PF": ParticleFilter(system, int(p.particles), seed=1),
         "PF-oracle": ParticleFilter(system, int(p.oracle_particles), seed=2),
     }
-    study, filters = run_trained_study(
-        system,
-        jobs,
+    studied = dict(
         classical=classical,
         runs=int(p.runs),
         steps=int(p.steps),
@@ -155,7 +153,26 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         cache_dir=root / "study",
         expect=lambda name: {"system": "veh2dof", "scenario": scenario, "window": job_window(name)},
     )
+    study, filters = run_trained_study(system, jobs, **studied)
     change = oracle_check(system, p, cfg, study) if scenario == "nominal" else None
+    if cfg.dropout.enabled:
+        d = cfg.dropout
+        dropout = Dropout(float(d.p), tuple(d.blackout) if d.blackout else None, int(d.seed))
+        print(f"2/3 the same study with sensor dropout ({scenario})")
+        gappy, _ = run_trained_study(system, jobs, **studied, dropout=dropout)
+        write_report(
+            gappy,
+            Path(cfg.report_dir) / "dropout",
+            title=f"Experiment I: veh2dof ({scenario}) with sensor dropout",
+            profile=cfg.profile,
+            notes=[
+                "The same evaluation data as the main report, with measurement entries set missing (NaN). "
+                "Kalman-type filters skip the update of a missing channel, the PFs weight on the present ones, "
+                "DAOF-v1 reads a missing channel as its predicted measurement and DAOF-v2 and the SLF hold its "
+                "last value (docs/missing_data.md)."
+            ],
+            meta={"command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} dropout.enabled=true"},
+        )
 
     print(f"3/3 report ({scenario})")
     window_rows = [
