@@ -224,7 +224,9 @@ def test_hold_last_value_fills_gaps_with_the_last_present_value():
     assert hold_last_value(held, torch.zeros(2)) is held  # complete data passes through untouched
 
 
-@pytest.mark.parametrize("kind,fill", [("DAOF-v1", "prediction"), ("DAOF-v1", "hold"), ("DAOF-v2", "hold"), ("SLF", "hold")])
+@pytest.mark.parametrize(
+    "kind,fill", [("DAOF-v1", "prediction"), ("DAOF-v1", "hold"), ("DAOF-v2", "hold"), ("SLF", "hold")]
+)
 def test_learned_filters_stay_finite_under_dropout(kind, fill):
     """NaN measurements (sensor dropout) never make a learned filter's estimate non-finite."""
     f = small(kind)

@@ -171,7 +171,9 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
                 "DAOF-v1 reads a missing channel as its predicted measurement and DAOF-v2 and the SLF hold its "
                 "last value (docs/missing_data.md)."
             ],
-            meta={"command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} dropout.enabled=true"},
+            meta={
+                "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} dropout.enabled=true"
+            },
         )
 
     print(f"3/3 report ({scenario})")
