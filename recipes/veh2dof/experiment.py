@@ -172,7 +172,8 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
                 "last value (docs/missing_data.md)."
             ],
             meta={
-                "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} dropout.enabled=true"
+                "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} "
+                "dropout.enabled=true"
             },
         )
 
