@@ -114,7 +114,11 @@ def run_trained_study(
     if clash:
         raise ValueError(f"filter names {clash} are both classical filters and training jobs")
     filters.update(load_trained(jobs, system, expect))
-    versions = {name: checkpoint_fingerprint([job.output_dir / "best.pt"]) for name, job in jobs.items()}
+    # the weights and how a missing channel is read (it changes the estimates under dropout)
+    versions = {
+        name: f"{checkpoint_fingerprint([job.output_dir / 'best.pt'])}-{filters[name].missing_fill}"
+        for name, job in jobs.items()
+    }
     study = run_study(
         system,
         filters,
