@@ -24,6 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "veh14dof"
 STATES = ["pitch", "roll", "yaw_rate", "side_slip", "vx", "ax"]
 UNITS = ["deg", "deg", "deg/s", "deg", "km/h", "g"]
+ROWS = {"SLF", "DAOF-v2", "DAOF-v2 (paper form)"}  # experiment.yaml: SLF and v2_rows
 FIGURES = [f"run0_{s}.png" for s in STATES] + ["per_run_rmse_box.png", "learning_curves.png"]
 
 
@@ -54,13 +55,13 @@ def _check_report(report: Path, runs: int) -> dict:
     assert results["system"] == "veh14dof" and results["runs"] == runs
     assert results["states"] == STATES and results["units"] == UNITS
     assert results["si_units"] == ["rad", "rad", "rad/s", "rad", "m/s", "m/s^2"]
-    assert set(results["filters"]) == {"SLF", "DAOF-v2"}  # model-free only: no EKF / UKF / PF / PF-oracle
+    assert set(results["filters"]) == ROWS  # model-free only: no EKF / UKF / PF / PF-oracle
     for name, row in results["filters"].items():
         assert len(row["rmse"]) == 6 and all(math.isfinite(v) for v in row["rmse"]), name
         assert len(row["per_run_rmse"]) == runs
         assert row["ratio_to_oracle"] is None and row["diverged"] == 0
         assert row["cost_ms"] > 0 and row["throughput_per_s"] > 0
-    assert set(results["training"]) == {"SLF", "DAOF-v2"}
+    assert set(results["training"]) == ROWS
     text = (report / "report.md").read_text()
     header = "| filter | " + " | ".join(f"RMSE {s} [{u}]" for s, u in zip(STATES, UNITS))
     assert header in text and "ratio to PF-oracle" not in text
@@ -81,6 +82,10 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path):
         )
     p = cfg.profiles.tiny
     jobs = recipe.training_jobs(cfg, p, tmp_path)
+    # each DAOF-v2 row trains with its own form, in its own directory
+    assert "network.v2_action=increment" in jobs["DAOF-v2"].overrides
+    assert not any("v2_action" in a for a in jobs["DAOF-v2 (paper form)"].overrides)
+    assert len({job.output_dir for job in jobs.values()}) == len(ROWS)
     for job in jobs.values():
         _train_in_process(job)
     report = recipe.study_and_report(cfg, p, jobs, time.perf_counter())
@@ -109,5 +114,5 @@ def test_experiment2_tiny_profile_end_to_end(tmp_path):
     _check_report(tmp_path / "report", runs=3)
     second = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("finished earlier, reusing") == 2
-    assert second.stdout.count("reused finished result") == 2
+    assert second.stdout.count("finished earlier, reusing") == len(ROWS)
+    assert second.stdout.count("reused finished result") == len(ROWS)

@@ -34,7 +34,6 @@ from envs.recorded import RecordedSystem
 
 HERE = Path(__file__).resolve().parent
 TRAINERS = HERE.parent / "veh2dof"  # the recipe scripts are shared; this directory holds the configs
-NAMES = ("SLF", "DAOF-v2")  # the paper's Table II rows
 
 
 def _system_overrides(p: DictConfig) -> dict:
@@ -42,7 +41,7 @@ def _system_overrides(p: DictConfig) -> dict:
 
 
 def training_jobs(cfg: DictConfig, p: DictConfig, root: Path) -> dict[str, TrainingJob]:
-    """SLF and DAOF-v2 with the same window and network (the configs' defaults plus the profile's overrides)."""
+    """SLF and every DAOF-v2 row with the same window and network (configs' defaults + rows' + profile's overrides)."""
     n = int(cfg.window)
     common = [
         f"scenario={cfg.scenario}",
@@ -55,22 +54,25 @@ def training_jobs(cfg: DictConfig, p: DictConfig, root: Path) -> dict[str, Train
     def config(name: str) -> list[str]:
         return ["--config-path", str(HERE), "--config-name", name]
 
-    return {
+    daof = [*config("config"), *common, "version=v2", f"overrides.replay.runs={p.bank_runs}"]
+    jobs = {
         "SLF": TrainingJob(
             "SLF",
             TRAINERS / "train_slf.py",
             root / f"slf-N{n}",
             int(p.slf_frames),
             [*config("slf"), *common, *p.slf_overrides],
-        ),
-        "DAOF-v2": TrainingJob(
-            "DAOF-v2",
-            TRAINERS / "train_daof.py",
-            root / f"daof-v2-N{n}",
-            int(p.daof_frames),
-            [*config("config"), *common, "version=v2", f"overrides.replay.runs={p.bank_runs}", *p.daof_overrides],
-        ),
+        )
     }
+    for name, row in cfg.v2_rows.items():
+        jobs[name] = TrainingJob(
+            name,
+            TRAINERS / "train_daof.py",
+            root / f"{row.dir}-N{n}",
+            int(p.daof_frames),
+            [*daof, *row.overrides, *p.daof_overrides],
+        )
+    return jobs
 
 
 def notes(cfg: DictConfig, p: DictConfig, filters: dict) -> list[str]:
@@ -87,6 +89,10 @@ def notes(cfg: DictConfig, p: DictConfig, filters: dict) -> list[str]:
         "on fresh simulated batches. Both are their best-validation checkpoints (validation seed 9100).",
         "RMSE in the paper's units (deg, deg/s, km/h, g): the SI errors times the system's report_scale.",
     ]
+    out += [
+        f"{name}: overrides of recipes/veh14dof/config.yaml {list(row.overrides) or 'none'}."
+        for name, row in cfg.v2_rows.items()
+    ]
     if _system_overrides(p):
         out.append(f"System overrides of this profile: {_system_overrides(p)} (not the spec's simulator settings).")
     return out
@@ -98,7 +104,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
     system = RecordedSystem(make_system("veh14dof", cfg.scenario, **_system_overrides(p)), cache_dir=cfg.cache_dir)
     study, filters = run_trained_study(
         system,
-        {name: jobs[name] for name in NAMES},
+        jobs,
         runs=int(p.runs),
         steps=int(p.steps),
         seed=int(cfg.seed),
