@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from daof.evaluate import Dropout, apply_dropout, dropout_mask, run_study
+from daof.evaluate.dropout import training_dropout_mask
 from daof.evaluate.report import write_report
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
 
@@ -27,6 +28,27 @@ def test_mask_is_reproducible_from_its_seed_with_the_asked_for_rate():
     n = mask.numel()
     assert abs(mask.float().mean().item() - 0.1) < 5 * math.sqrt(0.1 * 0.9 / n)  # binomial, 5 σ
     assert not dropout_mask(shape, 0.0).any() and dropout_mask(shape, 1.0).all()
+
+
+def test_training_gaps_spread_their_rate_and_black_out_one_channel_in_half_the_runs():
+    """Per-run gap rates ~ U[0, p_max] (mean p_max / 2); blackouts are one channel, one contiguous
+    stretch of at most blackout_s seconds, in about half the runs; same generator state, same mask."""
+    shape, dt = (4000, 200, 3), 0.02
+    gaps = training_dropout_mask(shape, 0.2, 0.0, dt, torch.Generator().manual_seed(0))
+    rates = gaps.float().mean((1, 2))
+    assert abs(rates.mean().item() - 0.1) < 0.005 and rates.max() < 0.25 and rates.min() < 0.01
+    assert not training_dropout_mask(shape, 0.0, 0.0, dt, torch.Generator().manual_seed(0)).any()
+    lost = training_dropout_mask(shape, 0.0, 1.0, dt, torch.Generator().manual_seed(1))
+    assert torch.equal(lost, training_dropout_mask(shape, 0.0, 1.0, dt, torch.Generator().manual_seed(1)))
+    per_run = lost.any(1)  # [runs, channels]
+    assert per_run.sum(-1).max() == 1  # one channel at most
+    assert abs(per_run.any(-1).float().mean().item() - 0.5) < 0.05
+    steps = lost.any(-1)  # [runs, steps]
+    assert steps.sum(-1).max() <= round(1.0 / dt)
+    edges = (steps[:, 1:] != steps[:, :-1]).sum(-1) + steps[:, 0] + steps[:, -1]
+    assert edges.max() <= 2  # one contiguous stretch
+    with pytest.raises(ValueError, match="training dropout"):
+        training_dropout_mask(shape, 1.5, 0.0, dt, torch.Generator())
 
 
 def test_blackout_covers_the_channel_for_its_seconds_in_every_run():

@@ -268,3 +268,27 @@ def test_prediction_fill_needs_a_model_predictor():
         small("DAOF-v2").missing_fill = "prediction"
     with pytest.raises(ValueError, match="missing_fill must be one of"):
         small("DAOF-v1").missing_fill = "zeros"
+
+
+def test_slf_missing_mask_flags_the_gaps_in_every_frame():
+    """``missing_mask``: each frame ends with 1{y_t missing} per channel, read unnormalised; the
+    values themselves are held as without the mask; closed-loop filters refuse the option."""
+    f = small("SLF", missing_mask=True)
+    s = f.system
+    m = s.measurement_dim
+    assert f.frame_dim == 2 * m + 2 * s.control_dim
+    data = s.simulate(2, 30, seed=5)
+    gappy = data.clone()
+    gappy["measurement"][0, 5:12, 1] = float("nan")
+    gappy["measurement"][1, ::4, 0] = float("nan")
+    frames = f.open_loop_frames(gappy["measurement"], gappy["control"], gappy["prev_control"])
+    assert torch.equal(frames[..., -m:], torch.isnan(gappy["measurement"]).float())
+    plain = small("SLF").open_loop_frames(gappy["measurement"], gappy["control"], gappy["prev_control"])
+    torch.testing.assert_close(frames[..., :-m], plain, rtol=0, atol=0)
+    flags = slice(f.frame_dim - m, f.frame_dim)
+    assert torch.equal(f.policy.input_loc[flags], torch.zeros(m))
+    assert torch.equal(f.policy.input_scale[flags], torch.ones(m))
+    assert torch.isfinite(f.run(gappy)).all()
+    torch.testing.assert_close(f.run(gappy), f.run_streaming(gappy))  # batched and step-by-step agree
+    with pytest.raises(ValueError, match="SLF only"):
+        small("DAOF-v2", missing_mask=True)

@@ -113,6 +113,25 @@ def test_slf_learns_and_resumes(tmp_path):
     assert summary["best"]["record"]["rmse_yaw_rate"] < 0.1
 
 
+def test_slf_trains_through_random_gaps_with_a_missing_mask(tmp_path):
+    """``dropout`` blanks entries of each batch (the same ones on a rerun) and ``network.missing_mask``
+    flags them; the run finishes and its filter keeps the mask."""
+    changes = {
+        "collector.total_frames": 400,
+        "network.missing_mask": True,
+        "dropout.p_max": 0.3,
+        "dropout.blackout_s": 0.5,
+    }
+    trainer = SLFTrainer(tiny_cfg("slf.yaml", tmp_path / "a", **changes))
+    windows, _ = trainer._dataset()
+    flags = windows.view(windows.shape[0], trainer.cfg.window, -1)[..., -trainer.system.measurement_dim :]
+    assert 0 < flags.mean() < 0.3 and set(flags.unique().tolist()) == {0.0, 1.0}
+    again, _ = SLFTrainer(tiny_cfg("slf.yaml", tmp_path / "b", **changes))._dataset()
+    assert torch.equal(windows, again)
+    assert trainer.train()["frames"] == 400
+    assert torch.load(tmp_path / "a" / "best.pt", weights_only=False)["config"]["missing_mask"] is True
+
+
 def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
     """auto: the entropy of Gaussian noise of k error scales per state, in the actor's action units."""
     for version in ("v1", "v2"):

@@ -80,6 +80,10 @@ class FilterConfig:
     #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
     #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
     v2_action: str = "estimate"
+    #: SLF: each frame also carries one 0/1 flag per measurement channel, 1 where the channel is
+    #: missing (its value then holds the last present one). Meant for an SLF trained with random
+    #: dropouts (``dropout`` in recipes/veh2dof/slf.yaml); docs/missing_data.md
+    missing_mask: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -94,6 +98,11 @@ class FilterConfig:
             raise ValueError(f"v2_action must be one of {V2_ACTIONS}, got {self.v2_action!r}")
         if self.correction_bound not in CORRECTION_BOUNDS:
             raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
+        if self.missing_mask and self.kind != "SLF":
+            raise ValueError(
+                f"missing_mask is built for the SLF only, not {self.kind} (a closed-loop filter would need dropouts "
+                "in the training env)"
+            )
 
 
 def schedule_row(table: torch.Tensor, step) -> torch.Tensor:
@@ -293,7 +302,9 @@ class LearnedFilter(nn.Module, Filter):
     @property
     def frame_dim(self) -> int:
         s = self.system
-        dim = s.measurement_dim + (2 * s.control_dim if self.uses_controls else 0)
+        dim = s.measurement_dim * (2 if self.config.missing_mask else 1) + (
+            2 * s.control_dim if self.uses_controls else 0
+        )
         return dim + (s.state_dim if self.closed_loop else 0)
 
     @property
@@ -347,6 +358,9 @@ class LearnedFilter(nn.Module, Filter):
             parts += [data["control"], data["prev_control"]]
         flat = torch.cat(parts, -1).flatten(0, 1)
         loc, scale = flat.mean(0), flat.std(0).clamp_min(1e-6)
+        if self.config.missing_mask:  # the 0/1 missing flags enter as they are
+            m = self.system.measurement_dim
+            loc, scale = torch.cat([loc, loc.new_zeros(m)]), torch.cat([scale, scale.new_ones(m)])
         self.policy.input_loc.copy_(loc.repeat(self.config.window))
         self.policy.input_scale.copy_(scale.repeat(self.config.window))
         if self.acts_by_update and self.config.kind == "DAOF-v2":
@@ -440,12 +454,15 @@ class LearnedFilter(nn.Module, Filter):
         """Per-step frames without the fed-back estimate: [y_t, (u_t, u_{t−1})].
 
         A missing measurement (NaN) holds the channel's last value; before the first value of a
-        channel it is the channel's training mean (see ``hold_last_value``).
+        channel it is the channel's training mean (see ``hold_last_value``). With ``missing_mask``
+        the frame ends with the channels' missing flags: [y_t, (u_t, u_{t−1}), 1{y_t missing}].
         """
         start = self.system.state_dim if self.closed_loop else 0  # where y sits in a frame
         y_mean = self.policy.input_loc[start : start + self.system.measurement_dim]
-        y = hold_last_value(y, y_mean)
-        return torch.cat([y, u, u_prev] if self.uses_controls else [y], -1)
+        parts = [hold_last_value(y, y_mean), *([u, u_prev] if self.uses_controls else [])]
+        if self.config.missing_mask:
+            parts.append(torch.isnan(y).to(parts[0].dtype))
+        return torch.cat(parts, -1)
 
     def _inference_layers(self) -> list[tuple[torch.Tensor, ...]]:
         """The policy's (weight, bias) per layer, for the deterministic filter only.

@@ -59,6 +59,7 @@ class FilterTrainer:
                 innovation_input=bool(net.get("innovation_input", True)),
                 window_padding=str(net.get("window_padding", "same")),
                 v2_action=str(net.get("v2_action", "estimate")),
+                missing_mask=bool(net.get("missing_mask", False)),
             ),
             self.system,
         )

@@ -4,7 +4,10 @@ SLF is the paper's learned baseline: the same network and input window as the DA
 open loop (measurements and controls only) and fitted by least squares to x_t on simulated data.
 The loss is the DAOF cost ‖x_t − x̂_t‖²_W with the env's default weights, so both learners
 optimise the same error measure. Each "batch" is a fresh set of simulated episodes (seeded from
-the run's seed and the batch index, so a resumed run sees the same data).
+the run's seed and the batch index, so a resumed run sees the same data). With ``dropout`` in the
+config, measurement entries of each batch go missing at random (``training_dropout_mask``) and are
+filled as at run time, so the SLF learns to filter through gaps (with ``network.missing_mask`` it
+also sees where they are).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import torch
 from omegaconf import DictConfig
 from torchrl._utils import timeit
 
+from daof.evaluate.dropout import training_dropout_mask
 from daof.filters.learned import sliding_windows
 from daof.train.base import FilterTrainer
 
@@ -41,7 +45,15 @@ class SLFTrainer(FilterTrainer):
         c = self.cfg.collector
         seed = int(self.cfg.seeds.train) * 1_000_003 + self.batches
         data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed)
-        frames = self.filter.open_loop_frames(data["measurement"], data["control"], data["prev_control"])
+        y = data["measurement"]
+        gaps = self.cfg.get("dropout")
+        if gaps is not None and (float(gaps.p_max) > 0 or float(gaps.blackout_s) > 0):
+            generator = torch.Generator().manual_seed(seed)
+            mask = training_dropout_mask(
+                tuple(y.shape), float(gaps.p_max), float(gaps.blackout_s), self.system.dt, generator
+            )
+            y = y.masked_fill(mask, float("nan"))
+        frames = self.filter.open_loop_frames(y, data["control"], data["prev_control"])
         windows = sliding_windows(frames, int(self.cfg.window))
         return windows.flatten(0, 1), data["state"].flatten(0, 1)
 
