@@ -1,17 +1,20 @@
-"""DAOF-v1 under sensor dropout: what a missing measurement should read as (docs/missing_data.md).
+"""Learned filters under sensor dropout: what a missing measurement should read as (docs/missing_data.md).
 
-    .venv/bin/python benchmarks/missing_data.py runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python benchmarks/missing_data.py runs/veh2dof/nominal/daof-v1-N20-s1/best.pt [more/best.pt ...]
 
-A trained DAOF-v1 (trained on complete data) filters fresh runs (seed 9300, disjoint from training,
-validation and evaluation seeds) under several gap patterns, once per treatment of a missing
-channel (``LearnedFilter.missing_fill``): "hold" its last value, or read the "prediction"
-g(f(x̂_{t−1}, u_{t−1}), u_t). The UKF, which skips the update of a missing channel, is the
-reference. Prints pooled RMSE per state as a markdown table.
+Trained filters (DAOF-v1, DAOF-v2 or SLF checkpoints on veh2dof) filter fresh runs (seed 9300,
+disjoint from training, validation and evaluation seeds) under several gap patterns. A DAOF-v1
+runs once per treatment of a missing channel (``LearnedFilter.missing_fill``): "hold" its last
+value, or read the "prediction" g(f(x̂_{t−1}, u_{t−1}), u_t); the model-free filters hold (an SLF
+trained with ``network.missing_mask`` also reads where the gaps are). The UKF, which skips the
+update of a missing channel, is the reference. Prints pooled RMSE per state as a markdown table,
+one column per filter and treatment, labelled by the checkpoint's directory.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import torch
 
@@ -38,28 +41,38 @@ def patterns(system, data) -> dict:
     return out
 
 
+def columns(paths: list[str], system) -> list[tuple[str, object, str]]:
+    """(label, filter, missing_fill) per column: every treatment a checkpoint's filter supports."""
+    out = []
+    for path in paths:
+        filt = load_filter(path, system)
+        fills = MISSING_FILLS if filt.config.kind == "DAOF-v1" else ("hold",)
+        out += [(f"{filt.config.kind} `{Path(path).parent.name}`, {fill}", filt, fill) for fill in fills]
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint")
+    parser.add_argument("checkpoints", nargs="+")
     parser.add_argument("--runs", type=int, default=50)
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--seed", type=int, default=9300)
     args = parser.parse_args()
     torch.set_num_threads(1)
     system = make_system("veh2dof")
-    filt = load_filter(args.checkpoint, system, expect={"kind": "DAOF-v1"})
+    cols = columns(args.checkpoints, system)
     ukf = UKF(system)
     data = system.simulate(args.runs, args.steps, seed=args.seed)
     states = ", ".join(system.state_names)
     print(f"{args.runs} runs x {args.steps} steps, seed {args.seed}; pooled RMSE [{states}]\n")
-    print("| gaps | UKF | " + " | ".join(f"DAOF-v1, {fill}" for fill in MISSING_FILLS) + " |")
-    print("|---" * (2 + len(MISSING_FILLS)) + "|")
+    print("| gaps | UKF | " + " | ".join(label for label, _, _ in cols) + " |")
+    print("|---" * (2 + len(cols)) + "|")
     for name, gappy in patterns(system, data).items():
         row = [pooled_rmse(ukf.run(gappy), gappy["state"])]
-        for fill in MISSING_FILLS:
+        for label, filt, fill in cols:
             filt.missing_fill = fill
             estimates = filt.run(gappy)
-            assert torch.isfinite(estimates).all(), f"non-finite DAOF-v1 estimate ({fill}, {name})"
+            assert torch.isfinite(estimates).all(), f"non-finite estimate ({label}, {name})"
             row.append(pooled_rmse(estimates, gappy["state"]))
         cells = " | ".join("[" + ", ".join(f"{v:.5f}" for v in r.tolist()) + "]" for r in row)
         print(f"| {name} | {cells} |", flush=True)
