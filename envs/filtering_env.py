@@ -9,7 +9,8 @@ Keys. Observations: ``measurement``, ``control`` (u_t), ``prev_control`` (u_{t�
 DAOF-v1 predictor needs), ``prev_estimate`` (x̂_{t−1}) and ``step`` (t, the number of measurements
 since the reset: 1 right after it; DAOF-v1 sizes its update bound by it). The true state x_t travels under
 ``true_state`` for logging and supervised training only: no filter module in this project reads
-it, and a filter that did would be cheating.
+it, and a filter that did would be cheating. A system with gaps (``envs.gaps.GappySystem``) adds
+``missing``, the 0/1 flags of the channels whose measurement is a held value.
 
 Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (about
 the RMSE of a near-optimal filter per state), so a near-optimal filter earns about −1 per step
@@ -90,6 +91,7 @@ class FilteringEnv(EnvBase):
             true_state=Unbounded(shape=(*B, n), device=dev),
             # the reward's terms, −W_i(x_i − x̂_i)², for a critic per state (0 after a reset)
             reward_per_state=Unbounded(shape=(*B, n), device=dev),
+            **({"missing": Unbounded(shape=(*B, m), device=dev)} if s.reports_missing else {}),
             shape=B,
             device=dev,
         )
@@ -112,7 +114,9 @@ class FilteringEnv(EnvBase):
     def _observation(self, reward_per_state: torch.Tensor | None = None) -> dict:
         if reward_per_state is None:
             reward_per_state = torch.zeros_like(self._prev_estimate)
+        missing = {"missing": self._obs["missing"]} if self.system.reports_missing else {}
         return {
+            **missing,
             "reward_per_state": reward_per_state,
             "measurement": self._obs["measurement"],
             "control": self._obs["control"],

@@ -47,6 +47,8 @@ class StochasticSystem:
     error_scale: torch.Tensor
     #: whether filters may call f and g (False for simulator-only systems such as veh14dof)
     has_model: bool = True
+    #: observations also carry ``missing`` (0/1 per measurement channel): ``envs.gaps.GappySystem``
+    reports_missing: bool = False
 
     # ----------------------------------------------------------------- dimensions
     @property

@@ -272,7 +272,7 @@ def test_prediction_fill_needs_a_model_predictor():
 
 def test_slf_missing_mask_flags_the_gaps_in_every_frame():
     """``missing_mask``: each frame ends with 1{y_t missing} per channel, read unnormalised; the
-    values themselves are held as without the mask; closed-loop filters refuse the option."""
+    values themselves are held as without the mask."""
     f = small("SLF", missing_mask=True)
     s = f.system
     m = s.measurement_dim
@@ -290,5 +290,3 @@ def test_slf_missing_mask_flags_the_gaps_in_every_frame():
     assert torch.equal(f.policy.input_scale[flags], torch.ones(m))
     assert torch.isfinite(f.run(gappy)).all()
     torch.testing.assert_close(f.run(gappy), f.run_streaming(gappy))  # batched and step-by-step agree
-    with pytest.raises(ValueError, match="SLF only"):
-        small("DAOF-v2", missing_mask=True)

@@ -1,10 +1,11 @@
-"""Sensor dropout (issue 6, item 3): measurement entries set to NaN, for the study and for training.
+"""Sensor dropout for the study (issue 6, item 3): measurement entries set to NaN.
 
 Every channel is missing independently with probability ``p`` per step, and one channel is blacked
 out for a stretch of time in every run (the issue's scenario: the yaw-rate channel for 1 s). The
 mask comes from its own seeded generator and depends only on the data's shape, the options and the
 seed, never on the data's values, so the same options give the same gaps on any system. NaN is how
-every filter in ``daof.filters`` recognises a missing channel (docs/missing_data.md).
+every filter in ``daof.filters`` recognises a missing channel (docs/missing_data.md). The gaps
+that learned filters are trained through are ``envs.gaps.training_dropout_mask``.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from tensordict import TensorDictBase
 
 from envs.system import StochasticSystem
 
-__all__ = ["Dropout", "apply_dropout", "dropout_mask", "training_dropout_mask"]
+__all__ = ["Dropout", "apply_dropout", "dropout_mask"]
 
 #: (channel index or name, start [s], duration [s])
 Blackout = tuple[int | str, float, float]
@@ -70,31 +71,6 @@ def dropout_mask(
         # half-step tolerance so that a boundary on the step grid is not lost to rounding
         window = (time > start_s - dt / 2) & (time < start_s + duration_s - dt / 2)
         mask[:, window, index] = True
-    return mask
-
-
-def training_dropout_mask(
-    shape: tuple[int, int, int], p_max: float, blackout_s: float, dt: float, generator: torch.Generator
-) -> torch.Tensor:
-    """Bool mask ``[runs, steps, channels]`` of random sensor gaps to train a filter on.
-
-    Not the study's pattern, a spread around it: each run misses every entry with its own
-    probability p ~ U[0, p_max], and half the runs also lose one random channel for U[0, blackout_s]
-    seconds from a random step (clipped at the run's end).
-    """
-    runs, steps, dim = shape
-    if not 0.0 <= p_max <= 1.0 or blackout_s < 0:
-        raise ValueError(f"training dropout needs 0 <= p_max <= 1 and blackout_s >= 0, got {p_max}, {blackout_s}")
-    p = torch.rand(runs, 1, 1, generator=generator) * p_max
-    mask = torch.rand(runs, steps, dim, generator=generator) < p
-    if blackout_s > 0:
-        lost = torch.rand(runs, generator=generator) < 0.5
-        channel = torch.randint(dim, (runs,), generator=generator)
-        start = torch.randint(steps, (runs, 1), generator=generator)
-        length = (torch.rand(runs, 1, generator=generator) * blackout_s / dt).round().long()
-        k = torch.arange(steps).view(1, -1)
-        window = lost.view(-1, 1) & (k >= start) & (k < start + length)  # [runs, steps]
-        mask |= window.unsqueeze(-1) & (torch.arange(dim).view(1, 1, -1) == channel.view(-1, 1, 1))
     return mask
 
 

@@ -80,9 +80,9 @@ class FilterConfig:
     #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
     #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
     v2_action: str = "estimate"
-    #: SLF: each frame also carries one 0/1 flag per measurement channel, 1 where the channel is
-    #: missing (its value then holds the last present one). Meant for an SLF trained with random
-    #: dropouts (``dropout`` in recipes/veh2dof/slf.yaml); docs/missing_data.md
+    #: SLF, DAOF-v2: each frame also carries one 0/1 flag per measurement channel, 1 where the
+    #: channel is missing (its value then holds the last present one). Meant for filters trained
+    #: through random gaps (``dropout`` in the recipes' configs, ``envs.gaps``); docs/missing_data.md
     missing_mask: bool = False
 
     def __post_init__(self):
@@ -98,11 +98,8 @@ class FilterConfig:
             raise ValueError(f"v2_action must be one of {V2_ACTIONS}, got {self.v2_action!r}")
         if self.correction_bound not in CORRECTION_BOUNDS:
             raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
-        if self.missing_mask and self.kind != "SLF":
-            raise ValueError(
-                f"missing_mask is built for the SLF only, not {self.kind} (a closed-loop filter would need dropouts "
-                "in the training env)"
-            )
+        if self.missing_mask and self.kind == "DAOF-v1":
+            raise ValueError("missing_mask is for the model-free filters: DAOF-v1 reads a gap as its prediction")
 
 
 def schedule_row(table: torch.Tensor, step) -> torch.Tensor:

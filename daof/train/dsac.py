@@ -32,6 +32,7 @@ from daof.train.networks import make_critic
 from daof.train.sampling import WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
+from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
 
@@ -143,11 +144,18 @@ class DSACTTrainer(FilterTrainer):
     def _make_data(self) -> None:
         cfg = self.cfg
         c = cfg.collector
+        system, flags = self.system, self.filter.config.missing_mask
+        gaps = cfg.get("dropout")
+        p_max, blackout_s = (float(gaps.p_max), float(gaps.blackout_s)) if gaps is not None else (0.0, 0.0)
+        if flags or p_max > 0 or blackout_s > 0:  # episodes with random sensor gaps (envs.gaps)
+            system = GappySystem(system, p_max, blackout_s, int(c.episode_steps))
         env = FilteringEnv(
-            self.system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
+            system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )
         self.base_env = env
-        self.env = with_window(env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding)
+        self.env = with_window(
+            env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding, missing_flags=flags
+        )
         size = int(cfg.buffer.size)
         self.startup_priority = float(cfg.buffer.get("startup_priority", 0.0))
         if self.startup_priority < 0:

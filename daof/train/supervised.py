@@ -16,9 +16,9 @@ import torch
 from omegaconf import DictConfig
 from torchrl._utils import timeit
 
-from daof.evaluate.dropout import training_dropout_mask
 from daof.filters.learned import sliding_windows
 from daof.train.base import FilterTrainer
+from envs.gaps import training_dropout_mask
 
 __all__ = ["SLFTrainer"]
 
