@@ -17,8 +17,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from envs.recorded import _COPIED
-from envs.system import StochasticSystem
+from envs.system import StochasticSystem, SystemWrapper
 
 __all__ = ["GappySystem", "MISSING_KEY", "training_dropout_mask"]
 
@@ -51,7 +50,7 @@ def training_dropout_mask(
     return mask
 
 
-class GappySystem(StochasticSystem):
+class GappySystem(SystemWrapper):
     """``base`` with random measurement gaps in every episode of up to ``steps`` measured steps."""
 
     reports_missing = True
@@ -59,26 +58,9 @@ class GappySystem(StochasticSystem):
     def __init__(self, base: StochasticSystem, p_max: float, blackout_s: float, steps: int):
         if steps < 1:
             raise ValueError(f"GappySystem needs episodes of steps >= 1, got {steps}")
-        self.base = base
-        for attr in _COPIED:
-            setattr(self, attr, getattr(base, attr))
+        super().__init__(base)
         self.p_max, self.blackout_s, self.steps = float(p_max), float(blackout_s), int(steps)
         self._gaps(1, torch.Generator().manual_seed(0))  # bad options fail here, with the mask's error
-
-    def __getattr__(self, name):
-        # only called for attributes not found normally: the base system's (report_scale, p, ...)
-        if name == "base" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.base, name)
-
-    def f(self, x, u):
-        return self.base.f(x, u)
-
-    def g(self, x, u):
-        return self.base.g(x, u)
-
-    def truth(self, x):
-        return self.base.truth(x)
 
     def _gaps(self, runs: int, generator: torch.Generator) -> torch.Tensor:
         shape = (runs, self.steps, self.measurement_dim)
@@ -106,12 +88,6 @@ class GappySystem(StochasticSystem):
     def simulate(self, runs: int, steps: int, seed: int, device="cpu") -> TensorDict:
         """The base system's complete data (validation and normalisation sets have no gaps)."""
         return self.base.simulate(runs, steps, seed, device)
-
-    def to(self, device) -> GappySystem:
-        self.base.to(device)
-        for attr in ("state_low", "state_high", "error_scale"):
-            setattr(self, attr, getattr(self.base, attr))
-        return self
 
     def describe(self) -> dict:
         info = self.base.describe()

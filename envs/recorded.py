@@ -31,31 +31,12 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from envs.system import StochasticSystem
+from envs.system import StochasticSystem, SystemWrapper
 
 __all__ = ["RecordedSystem", "cache_key", "cached_simulate"]
 
 #: bump when the cached file format or the meaning of its key changes
 FORMAT = 1
-
-_COPIED = (
-    "name",
-    "scenario",
-    "scenarios",
-    "dt",
-    "state_names",
-    "state_units",
-    "measurement_names",
-    "measurement_units",
-    "control_names",
-    "prior",
-    "process_noise",
-    "measurement_noise",
-    "state_low",
-    "state_high",
-    "error_scale",
-    "has_model",
-)
 
 
 def _params(system: StochasticSystem) -> dict:
@@ -115,7 +96,7 @@ def cached_simulate(
             fcntl.flock(lock, fcntl.LOCK_UN)
 
 
-class RecordedSystem(StochasticSystem):
+class RecordedSystem(SystemWrapper):
     """``base`` with env episodes replayed from a bank of ``runs`` recorded episodes.
 
     Args:
@@ -131,9 +112,7 @@ class RecordedSystem(StochasticSystem):
             raise ValueError("base is already a RecordedSystem")
         if int(runs) < 1 or int(steps) < 1:
             raise ValueError(f"a bank needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
-        self.base = base
-        for attr in _COPIED:
-            setattr(self, attr, getattr(base, attr))
+        super().__init__(base)
         self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), int(seed)
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self._bank: TensorDict | None = None
@@ -147,22 +126,6 @@ class RecordedSystem(StochasticSystem):
         if unknown:
             raise ValueError(f"unknown replay option(s) {unknown}; valid: {list(fields)}")
         return cls(base, **kwargs)
-
-    def __getattr__(self, name):
-        # only called for attributes not found normally: the base system's (report_scale, p, ...)
-        if name == "base" or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.base, name)
-
-    # ----------------------------------------------------------------- the base system's model
-    def f(self, x, u):
-        return self.base.f(x, u)
-
-    def g(self, x, u):
-        return self.base.g(x, u)
-
-    def truth(self, x):
-        return self.base.truth(x)
 
     # ----------------------------------------------------------------- data
     def simulate(self, runs: int, steps: int, seed: int, device="cpu") -> TensorDict:
@@ -209,12 +172,6 @@ class RecordedSystem(StochasticSystem):
         return new_sim, obs
 
     # ----------------------------------------------------------------- helpers
-    def to(self, device) -> RecordedSystem:
-        self.base.to(device)
-        for attr in ("state_low", "state_high", "error_scale"):
-            setattr(self, attr, getattr(self.base, attr))
-        return self
-
     def describe(self) -> dict:
         info = self.base.describe()
         info["replay"] = {

@@ -165,3 +165,58 @@ class StochasticSystem:
             "measurements": list(self.measurement_names),
             "controls": list(self.control_names),
         }
+
+
+class SystemWrapper(StochasticSystem):
+    """A system that serves ``base``'s episodes differently (replayed, with gaps, ...).
+
+    Names, prior, noises, bounds and the model (``f``, ``g``, ``truth``) are the base system's;
+    any other attribute (``report_scale``, parameters) is read from it. Subclasses override how
+    episodes are drawn and advanced.
+    """
+
+    #: attributes copied from the base system (the rest is looked up on it)
+    COPIED = (
+        "name",
+        "scenario",
+        "scenarios",
+        "dt",
+        "state_names",
+        "state_units",
+        "measurement_names",
+        "measurement_units",
+        "control_names",
+        "prior",
+        "process_noise",
+        "measurement_noise",
+        "state_low",
+        "state_high",
+        "error_scale",
+        "has_model",
+    )
+
+    def __init__(self, base: StochasticSystem):
+        self.base = base
+        for attr in self.COPIED:
+            setattr(self, attr, getattr(base, attr))
+
+    def __getattr__(self, name):
+        # only called for attributes not found normally: the base system's (report_scale, p, ...)
+        if name == "base" or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    def f(self, x, u):
+        return self.base.f(x, u)
+
+    def g(self, x, u):
+        return self.base.g(x, u)
+
+    def truth(self, x):
+        return self.base.truth(x)
+
+    def to(self, device) -> SystemWrapper:
+        self.base.to(device)
+        for attr in ("state_low", "state_high", "error_scale"):
+            setattr(self, attr, getattr(self.base, attr))
+        return self
