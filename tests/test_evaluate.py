@@ -330,13 +330,51 @@ def test_a_failed_training_exits_with_one_line(tmp_path):
     from daof.evaluate.experiment import train
     from daof.evaluate.jobs import TrainingJob
 
+    # a recipe that rejects the job's config fails before anything is launched, with its reason
     script = tmp_path / "broken.py"
     script.write_text("import sys\nprint('bad override')\nsys.exit(2)\n")
     job = TrainingJob("SLF", script, tmp_path / "slf", 100)
     with pytest.raises(SystemExit) as error:
         train([job], parallel=1, log=lambda _: None)
+    assert str(error.value) == f"SLF: {script} rejects its overrides: bad override"
+    # a training that crashes: one line naming it, and the log it points to holds the cause
+    script = tmp_path / "crashing.py"
+    script.write_text(
+        "import sys\nif '--cfg' in sys.argv:\n    print('{}'); sys.exit(0)\nprint('out of memory')\nsys.exit(3)\n"
+    )
+    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    with pytest.raises(SystemExit) as error:
+        train([job], parallel=1, log=lambda _: None)
     assert str(error.value) == "training failed for ['SLF']; rerun the same command to resume"
-    assert "bad override" in (tmp_path / "slf" / "train.log").read_text()  # the log it points to holds the cause
+    assert "out of memory" in (tmp_path / "slf" / "train.log").read_text()
+
+
+def test_a_recipe_config_edited_during_a_run_does_not_fail_it(tmp_path):
+    """The config a job asks for is pinned when the run starts: a training that finishes after its
+    recipe file was edited (a new option added, say) is done, and a rerun sets it aside."""
+    from daof.evaluate.experiment import train
+    from daof.evaluate.jobs import TrainingJob
+    from daof.train.checkpoint import RUN_CONFIG
+
+    recipe = tmp_path / "recipe.json"
+    recipe.write_text(json.dumps({"lr": 1}))
+    script = tmp_path / "train.py"
+    script.write_text(
+        "import json, sys, pathlib\n"
+        f"recipe = pathlib.Path({str(recipe)!r})\n"
+        "if '--cfg' in sys.argv:\n"
+        "    print(recipe.read_text()); sys.exit(0)\n"
+        "out = pathlib.Path([a for a in sys.argv if a.startswith('output_dir=')][0].split('=', 1)[1])\n"
+        f"(out / {RUN_CONFIG!r}).write_text(recipe.read_text())\n"
+        "(out / 'summary.json').write_text(json.dumps({'frames': 100})); (out / 'best.pt').write_bytes(b'')\n"
+        "recipe.write_text(json.dumps({'lr': 1, 'new_option': 0}))  # edited while the run is going\n"
+    )
+    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    lines = []
+    train([job], parallel=1, log=lines.append)
+    assert any("SLF: done" in line for line in lines), lines
+    again = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    assert not again.finished()  # the recipe now asks for another config
 
 
 @pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "SLF"])

@@ -62,7 +62,8 @@ class TrainingJob:
         cmd = [*self.command(with_resume=False), "--cfg", "job", "--resolve"]
         out = subprocess.run(cmd, capture_output=True, text=True)
         if out.returncode != 0:
-            raise RuntimeError(f"{self.name}: {self.script} rejects its overrides: {out.stderr.strip()[-300:]}")
+            cause = (out.stderr.strip() or out.stdout.strip()).replace("\n", " | ")[-300:]
+            raise RuntimeError(f"{self.name}: {self.script} rejects its overrides: {cause}")
         return OmegaConf.to_container(OmegaConf.create(out.stdout))
 
     def config_matches(self) -> bool:
@@ -114,6 +115,7 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
         stale = job.set_aside_if_stale()
         if stale is not None:
             log(f"  {job.name}: {job.output_dir} was trained with another config; moved to {stale}")
+        _ = job.requested_config  # pinned now: a recipe config edited while the job runs does not fail it
         pending.append(job)
     running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
     failed = []
@@ -140,7 +142,8 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
                 log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
             else:
                 failed.append(job.name)
-                log(f"  {job.name}: FAILED (exit {proc.returncode}); see {log_path}")
+                why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but its summary or best.pt is missing"
+                log(f"  {job.name}: FAILED ({why}); see {log_path}")
         if running and time.monotonic() - last_status > status_every:
             last_status = time.monotonic()
             for job, _, log_path, _ in running:
