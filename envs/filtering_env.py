@@ -24,6 +24,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from envs.gaps import MISSING_KEY
 from envs.system import StochasticSystem
 
 __all__ = ["FilteringEnv", "make_env"]
@@ -91,7 +92,7 @@ class FilteringEnv(EnvBase):
             true_state=Unbounded(shape=(*B, n), device=dev),
             # the reward's terms, −W_i(x_i − x̂_i)², for a critic per state (0 after a reset)
             reward_per_state=Unbounded(shape=(*B, n), device=dev),
-            **({"missing": Unbounded(shape=(*B, m), device=dev)} if s.reports_missing else {}),
+            **({MISSING_KEY: Unbounded(shape=(*B, m), device=dev)} if s.reports_missing else {}),
             shape=B,
             device=dev,
         )
@@ -114,7 +115,7 @@ class FilteringEnv(EnvBase):
     def _observation(self, reward_per_state: torch.Tensor | None = None) -> dict:
         if reward_per_state is None:
             reward_per_state = torch.zeros_like(self._prev_estimate)
-        missing = {"missing": self._obs["missing"]} if self.system.reports_missing else {}
+        missing = {MISSING_KEY: self._obs[MISSING_KEY]} if self.system.reports_missing else {}
         return {
             **missing,
             "reward_per_state": reward_per_state,

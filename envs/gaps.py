@@ -37,16 +37,17 @@ def training_dropout_mask(
     runs, steps, dim = shape
     if not 0.0 <= p_max <= 1.0 or blackout_s < 0:
         raise ValueError(f"training dropout needs 0 <= p_max <= 1 and blackout_s >= 0, got {p_max}, {blackout_s}")
-    p = torch.rand(runs, 1, 1, generator=generator) * p_max
-    mask = torch.rand(runs, steps, dim, generator=generator) < p
+    dev = generator.device  # the mask lives where the generator draws (an env's device)
+    p = torch.rand(runs, 1, 1, generator=generator, device=dev) * p_max
+    mask = torch.rand(runs, steps, dim, generator=generator, device=dev) < p
     if blackout_s > 0:
-        lost = torch.rand(runs, generator=generator) < 0.5
-        channel = torch.randint(dim, (runs,), generator=generator)
-        start = torch.randint(steps, (runs, 1), generator=generator)
-        length = (torch.rand(runs, 1, generator=generator) * blackout_s / dt).round().long()
-        k = torch.arange(steps).view(1, -1)
+        lost = torch.rand(runs, generator=generator, device=dev) < 0.5
+        channel = torch.randint(dim, (runs,), generator=generator, device=dev)
+        start = torch.randint(steps, (runs, 1), generator=generator, device=dev)
+        length = (torch.rand(runs, 1, generator=generator, device=dev) * blackout_s / dt).round().long()
+        k = torch.arange(steps, device=dev).view(1, -1)
         window = lost.view(-1, 1) & (k >= start) & (k < start + length)  # [runs, steps]
-        mask |= window.unsqueeze(-1) & (torch.arange(dim).view(1, 1, -1) == channel.view(-1, 1, 1))
+        mask |= window.unsqueeze(-1) & (torch.arange(dim, device=dev).view(1, 1, -1) == channel.view(-1, 1, 1))
     return mask
 
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 from torchrl.envs import CatFrames, CatTensors, Compose, TransformedEnv
 
+from envs.gaps import MISSING_KEY
+
 __all__ = ["FRAME_KEY", "HISTORY_KEY", "PADDINGS", "frame_keys", "history_dim", "window_transform", "with_window"]
 
 HISTORY_KEY = "history"
@@ -33,7 +35,7 @@ def frame_keys(include_controls: bool, missing_flags: bool = False) -> list[str]
     if include_controls:
         keys += ["control", "prev_control"]
     if missing_flags:  # envs.gaps.GappySystem's flags
-        keys.append("missing")
+        keys.append(MISSING_KEY)
     return keys
 
 
