@@ -76,6 +76,15 @@ class FilterTrainer:
         self._clock_start = None
         self._next_ckpt = int(cfg.checkpoint.every_frames)
 
+    @property
+    def training_gaps(self) -> tuple[float, float]:
+        """(p_max, blackout_s) of the config's ``dropout`` (random sensor gaps to train through; ``envs.gaps``).
+
+        (0, 0) when the config has none: complete training data.
+        """
+        gaps = self.cfg.get("dropout")
+        return (float(gaps.p_max), float(gaps.blackout_s)) if gaps is not None else (0.0, 0.0)
+
     # ----------------------------------------------------------------- subclass hooks
     def extra_state(self) -> dict:
         """Optimisation state of the subclass (optimisers, loss, buffers, generators)."""

@@ -145,10 +145,8 @@ class DSACTTrainer(FilterTrainer):
         cfg = self.cfg
         c = cfg.collector
         system, flags = self.system, self.filter.config.missing_mask
-        gaps = cfg.get("dropout")
-        p_max, blackout_s = (float(gaps.p_max), float(gaps.blackout_s)) if gaps is not None else (0.0, 0.0)
-        if flags or p_max > 0 or blackout_s > 0:  # episodes with random sensor gaps (envs.gaps)
-            system = GappySystem(system, p_max, blackout_s, int(c.episode_steps))
+        if flags or any(self.training_gaps):  # episodes with random sensor gaps (envs.gaps)
+            system = GappySystem(system, *self.training_gaps, int(c.episode_steps))
         env = FilteringEnv(
             system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )

@@ -46,12 +46,9 @@ class SLFTrainer(FilterTrainer):
         seed = int(self.cfg.seeds.train) * 1_000_003 + self.batches
         data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed)
         y = data["measurement"]
-        gaps = self.cfg.get("dropout")
-        if gaps is not None and (float(gaps.p_max) > 0 or float(gaps.blackout_s) > 0):
+        if any(self.training_gaps):
             generator = torch.Generator().manual_seed(seed)
-            mask = training_dropout_mask(
-                tuple(y.shape), float(gaps.p_max), float(gaps.blackout_s), self.system.dt, generator
-            )
+            mask = training_dropout_mask(tuple(y.shape), *self.training_gaps, self.system.dt, generator)
             y = y.masked_fill(mask, float("nan"))
         frames = self.filter.open_loop_frames(y, data["control"], data["prev_control"])
         windows = sliding_windows(frames, int(self.cfg.window))
