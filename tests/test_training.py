@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
-from daof.train.supervised import SLFTrainer
+from daof.train.supervised import SLFTrainer, gap_seed
+from envs.gaps import training_dropout_mask
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "veh2dof"
 
@@ -133,6 +134,25 @@ def test_slf_trains_through_random_gaps_with_a_missing_mask(tmp_path):
     assert torch.equal(windows, again)
     assert trainer.train()["frames"] == 400
     assert torch.load(tmp_path / "a" / "best.pt", weights_only=False)["config"]["missing_mask"] is True
+
+
+def test_slf_training_gaps_are_drawn_independently_of_the_simulation_noise(tmp_path):
+    """The gaps of a batch come from ``gap_seed(simulation seed)``, never from the simulation's own seed
+    (the same seed would tie the gap pattern to the noise draws)."""
+    changes = {"network.missing_mask": True, "dropout.p_max": 0.3, "dropout.blackout_s": 0.5}
+    trainer = SLFTrainer(tiny_cfg("slf.yaml", tmp_path, **changes))
+    seed = trainer.batch_seed()
+    windows, _ = trainer._dataset()
+    c, dim = trainer.cfg.collector, trainer.system.measurement_dim
+    runs, steps = int(c.env_batch), int(c.episode_steps)
+    flags = windows.view(runs, steps, trainer.cfg.window, -1)[:, :, -1, -dim:].bool()  # each window's newest frame
+    assert gap_seed(seed) != seed and gap_seed(seed) == gap_seed(seed)
+
+    def mask(s):
+        return training_dropout_mask((runs, steps, dim), 0.3, 0.5, trainer.system.dt, torch.Generator().manual_seed(s))
+
+    assert torch.equal(flags, mask(gap_seed(seed)))
+    assert not torch.equal(flags, mask(seed))
 
 
 def test_target_entropy_is_sized_from_the_error_scale(tmp_path):

@@ -5,13 +5,14 @@ open loop (measurements and controls only) and fitted by least squares to x_t on
 The loss is the DAOF cost ‖x_t − x̂_t‖²_W with the env's default weights, so both learners
 optimise the same error measure. Each "batch" is a fresh set of simulated episodes (seeded from
 the run's seed and the batch index, so a resumed run sees the same data). With ``dropout`` in the
-config, measurement entries of each batch go missing at random (``training_dropout_mask``) and are
-filled as at run time, so the SLF learns to filter through gaps (with ``network.missing_mask`` it
-also sees where they are).
+config, measurement entries of each batch go missing at random (``training_dropout_mask``, drawn
+from a stream of its own, independent of the simulation's noise) and are filled as at run time, so
+the SLF learns to filter through gaps (with ``network.missing_mask`` it also sees where they are).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 from torchrl._utils import timeit
@@ -20,7 +21,15 @@ from daof.filters.learned import sliding_windows
 from daof.train.base import FilterTrainer
 from envs.gaps import training_dropout_mask
 
-__all__ = ["SLFTrainer"]
+__all__ = ["SLFTrainer", "gap_seed"]
+
+
+def gap_seed(simulation_seed: int) -> int:
+    """Seed of a batch's training gaps: a stream independent of the one ``simulate`` draws from.
+
+    Seeding both with the same number would make the gap pattern a function of the noise draws.
+    """
+    return int(np.random.SeedSequence([int(simulation_seed), 1]).generate_state(1, np.uint64)[0] >> 1)
 
 
 class SLFTrainer(FilterTrainer):
@@ -40,14 +49,18 @@ class SLFTrainer(FilterTrainer):
         self.optim.load_state_dict(blob["optim"])
         self.batches = blob["batches"]
 
+    def batch_seed(self) -> int:
+        """Simulation seed of the next batch: from the run's seed and the batch index."""
+        return int(self.cfg.seeds.train) * 1_000_003 + self.batches
+
     def _dataset(self) -> tuple[torch.Tensor, torch.Tensor]:
         """One batch of fresh episodes as (windows [M, N·F], targets [M, n])."""
         c = self.cfg.collector
-        seed = int(self.cfg.seeds.train) * 1_000_003 + self.batches
+        seed = self.batch_seed()
         data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed)
         y = data["measurement"]
         if any(self.training_gaps):
-            generator = torch.Generator().manual_seed(seed)
+            generator = torch.Generator().manual_seed(gap_seed(seed))
             mask = training_dropout_mask(tuple(y.shape), *self.training_gaps, self.system.dt, generator)
             y = y.masked_fill(mask, float("nan"))
         frames = self.filter.open_loop_frames(y, data["control"], data["prev_control"])
