@@ -11,7 +11,15 @@ import pytest
 import torch
 from filterpy.monte_carlo import systematic_resample as filterpy_systematic_resample
 
-from daof.filters import EKF, UKF, CovarianceRepair, KalmanFilter, ParticleFilter, systematic_resample
+from daof.filters import (
+    EKF,
+    UKF,
+    CovarianceRepair,
+    KalmanFilter,
+    ParticleFilter,
+    StationaryKalmanFilter,
+    systematic_resample,
+)
 from daof.filters.kalman import make_model
 from envs.linear import stationary_kalman_covariance
 
@@ -101,6 +109,30 @@ def test_ekf_ukf_equal_the_kalman_filter_on_a_linear_system(lin, lin_data):
     assert reference.dtype == torch.float64
     for filt in (EKF(lin, dtype=torch.float64), UKF(lin, dtype=torch.float64), EKF(lin, model="torch")):
         torch.testing.assert_close(filt.run(data).double(), reference, rtol=1e-5, atol=1e-6)
+
+
+def test_stationary_kalman_filter_is_the_kalman_filter_after_its_start_up(lin, lin_data):
+    """Its gain is the exact filter's limit; it pays only in the start-up, where the prior is wide."""
+    data = lin_data[:20]
+    exact = KalmanFilter(lin, dtype=torch.float64).run(data)
+    stationary = StationaryKalmanFilter(lin).run(data)
+    assert stationary.dtype == torch.float32 and stationary.shape == exact.shape
+    torch.testing.assert_close(stationary[:, 150:].double(), exact[:, 150:], rtol=0, atol=1e-5)
+    start_exact, start_stationary = rmse(exact[:, :20], data[:, :20]), rmse(stationary[:, :20].double(), data[:, :20])
+    assert (start_stationary > 1.2 * start_exact).all()
+
+
+def test_stationary_kalman_filter_only_predicts_without_a_measurement(lin, lin_data, veh):
+    data = lin_data[:3, :40].clone()
+    data["measurement"][:, 10:] = float("nan")
+    estimate = StationaryKalmanFilter(lin).run(data).double()
+    A, B = lin.A.double(), lin.B.double()
+    predicted = estimate[:, 9]
+    for t in range(10, 40):
+        predicted = predicted @ A.T + data["prev_control"][:, t].double() @ B.T
+        torch.testing.assert_close(estimate[:, t], predicted, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="needs a linear system"):
+        StationaryKalmanFilter(veh)
 
 
 def test_particle_filter_matches_the_kalman_filter_on_linear(lin, lin_data):

@@ -28,7 +28,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     assert results["system"] == "linear" and results["runs"] == 3 and results["steps"] == 60
     assert results["reference"] == "KF"
     rows = results["filters"]
-    assert list(rows) == ["KF", "PF", "DAOF-v1", "DAOF-v2"]
+    assert list(rows) == ["KF", "KF-stationary", "PF", "DAOF-v1", "DAOF-v2"]
     for name, row in rows.items():
         assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
         # the ratio column is this filter's RMSE over the KF's, per state
@@ -51,6 +51,9 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # the trainings are the Experiment I recipe with recipes/linear/config.yaml
     assert set(results["training"]) == {"DAOF-v1", "DAOF-v2"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
+    # DAOF-v2 acts by increments, as in Experiment I (v2_overrides)
+    v2_config = json.loads((tmp_path / "daof-v2-N20" / "run_config.json").read_text())
+    assert v2_config["network"]["v2_action"] == "increment"
     assert f"report: {report / 'report.md'}" in done.stdout
 
 

@@ -30,7 +30,7 @@ from daof.evaluate.experiment import (
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import write_report
-from daof.filters import KalmanFilter, ParticleFilter
+from daof.filters import KalmanFilter, ParticleFilter, StationaryKalmanFilter
 from envs import make_system
 
 HERE = Path(__file__).resolve().parent
@@ -51,11 +51,16 @@ def training_jobs(cfg: DictConfig, p: DictConfig, root: Path) -> dict[str, Train
         f"window={n}",
         *p.daof_overrides,
     ]
+    extra = {"v1": [], "v2": list(cfg.v2_overrides)}
     return {
-        name: TrainingJob(
-            name, TRAINERS / "train_daof.py", root / f"daof-{v}-N{n}", int(p.daof_frames), [*common, f"version={v}"]
+        f"DAOF-{v}": TrainingJob(
+            f"DAOF-{v}",
+            TRAINERS / "train_daof.py",
+            root / f"daof-{v}-N{n}",
+            int(p.daof_frames),
+            [*common, f"version={v}", *o],
         )
-        for name, v in (("DAOF-v1", "v1"), ("DAOF-v2", "v2"))
+        for v, o in extra.items()
     }
 
 
@@ -87,6 +92,8 @@ def notes(cfg: DictConfig, p: DictConfig, study) -> list[str]:
         "The Kalman filter (filterpy, exact A, B, C, Q, R and the prior) is the optimal (MMSE) filter of this "
         "linear-Gaussian system: it is the reference of every ratio, and a diverged run is one with a non-finite "
         "estimate or an RMSE above 10x the KF's.",
+        "KF-stationary: the Kalman filter with its steady-state gain at every step, the optimum the paper names "
+        "(a time-invariant filter); it differs from the KF only in the start-up, where the prior is wide.",
         f"PF: bootstrap particle filter with {p.particles} particles and the exact Gaussian densities.",
         f"DAOF-v1 and DAOF-v2: N = {cfg.window}, trained with DSAC-T by recipes/veh2dof/train_daof.py with "
         f"recipes/linear/config.yaml (training seed {cfg.training_seed}); the best-validation checkpoints "
@@ -122,7 +129,11 @@ def main(cfg: DictConfig) -> None:
     study, filters = run_trained_study(
         system,
         jobs,
-        classical={REFERENCE: KalmanFilter(system), "PF": ParticleFilter(system, int(p.particles), seed=1)},
+        classical={
+            REFERENCE: KalmanFilter(system),
+            "KF-stationary": StationaryKalmanFilter(system),
+            "PF": ParticleFilter(system, int(p.particles), seed=1),
+        },
         runs=int(p.runs),
         steps=int(p.steps),
         seed=int(cfg.seed),
