@@ -62,11 +62,11 @@ def states_at(trainer: DSACTTrainer, step: int, resets: int) -> TensorDict:
 
 
 def critic_value(trainer: DSACTTrainer, obs: TensorDict, action: torch.Tensor) -> torch.Tensor:
-    """min_i Σ_k μ_ik(h, a) for actions [..., B, n] against observations [B]."""
+    """Σ_k min_i μ_ik(h, a), what the actor maximises, for actions [..., B, n] against observations [B]."""
     td = obs.expand(*action.shape[:-1]).clone()
     td.set(trainer.filter.action_key, action)
     mu, _ = trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)
-    return mu.sum(-1).min(0)[0]
+    return mu.min(0)[0].sum(-1)
 
 
 def grid_argmax(trainer: DSACTTrainer, obs: TensorDict, points: int) -> torch.Tensor:
@@ -106,7 +106,7 @@ def main() -> None:
         data = TensorDict({k: obs[k].unsqueeze(1) for k in ("measurement", "control", "prev_control")}, [len(obs), 1])
         actions["UKF"] = (UKF(s).run(data)[:, 0] - prediction) / bound
         reference = "UKF"
-    ref = actions[reference if reference == "UKF" else "1 × actor"]
+    ref = actions["UKF"] if reference == "UKF" else actor
     weights = trainer.reward_weights
     weights = weights[min(args.step, len(weights)) - 1] if weights.ndim == 2 else weights  # W_t
     print(f"{args.run}: {len(obs)} states at step {args.step}, {trainer.frames} frames trained; b_t = {bound.tolist()}")
