@@ -122,18 +122,18 @@ def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
     assert reused == [False, True, False]
 
 
-def test_filters_without_a_version_are_cached_under_their_code_and_settings():
+def test_classical_filters_are_cached_under_their_code_and_settings():
     """Two filters built alike share a fingerprint; another particle count or seed gets its own."""
-    from daof.evaluate.study import code_fingerprint
+    from daof.evaluate.experiment import classical_fingerprint
     from daof.filters import UKF, ParticleFilter
     from envs import make_system
 
     system = make_system("veh2dof")
-    pf = code_fingerprint(ParticleFilter(system, 100, seed=1), system)
-    assert pf == code_fingerprint(ParticleFilter(system, 100, seed=1), system)
-    assert pf != code_fingerprint(ParticleFilter(system, 200, seed=1), system)
-    assert pf != code_fingerprint(ParticleFilter(system, 100, seed=2), system)
-    assert pf != code_fingerprint(UKF(system), system)
+    pf = classical_fingerprint(ParticleFilter(system, 100, seed=1), system)
+    assert pf == classical_fingerprint(ParticleFilter(system, 100, seed=1), system)
+    assert pf != classical_fingerprint(ParticleFilter(system, 200, seed=1), system)
+    assert pf != classical_fingerprint(ParticleFilter(system, 100, seed=2), system)
+    assert pf != classical_fingerprint(UKF(system), system)
 
 
 # ----------------------------------------------------------------------------- scenarios side by side

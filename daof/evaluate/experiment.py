@@ -9,13 +9,16 @@ problem (``SystemExit``), not a traceback.
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig
 
 from daof.evaluate.jobs import TrainingJob, run_jobs
-from daof.evaluate.study import ORACLE, Study, checkpoint_fingerprint, run_study
+from daof.evaluate.study import ORACLE, Study, run_study
+from daof.filters.base import Filter
 from daof.filters.learned import load_filter
 from envs import make_system
 
@@ -105,9 +108,10 @@ def run_trained_study(
     """The study of ``classical`` filters (name -> filter) and every job's best checkpoint after them.
 
     Learned filters are cached under a digest of their checkpoint (``checkpoint_fingerprint``), so
-    a retrained filter is never scored from a stale cache entry (classical ones: ``run_study``'s
-    ``code_fingerprint``). ``dropout`` (a ``Dropout``) runs the study on the same data with those
-    measurement gaps. Returns the study and every filter.
+    a retrained filter is never scored from a stale cache entry; classical ones under a digest of
+    their code and settings (``classical_fingerprint``), so an edited filter is run again.
+    ``dropout`` (a ``Dropout``) runs the study on the same data with those measurement gaps.
+    Returns the study and every filter.
     """
     filters = dict(classical or {})
     clash = sorted(set(filters) & set(jobs))
@@ -115,10 +119,13 @@ def run_trained_study(
         raise ValueError(f"filter names {clash} are both classical filters and training jobs")
     filters.update(load_trained(jobs, system, expect))
     # the weights and how a missing channel is read (it changes the estimates under dropout)
-    versions = {
-        name: f"{checkpoint_fingerprint([job.output_dir / 'best.pt'])}-{filters[name].missing_fill}"
-        for name, job in jobs.items()
-    }
+    versions = {name: classical_fingerprint(filt, system) for name, filt in (classical or {}).items()}
+    versions.update(
+        {
+            name: f"{checkpoint_fingerprint([job.output_dir / 'best.pt'])}-{filters[name].missing_fill}"
+            for name, job in jobs.items()
+        }
+    )
     study = run_study(
         system,
         filters,
@@ -147,3 +154,19 @@ def training_costs(jobs: dict[str, TrainingJob]) -> dict[str, dict]:
         name: {k: job.summary().get(k) for k in ("frames", "updates", "wall_s", "threads")}
         for name, job in jobs.items()
     }
+
+
+def classical_fingerprint(filt, system) -> str:
+    """A short digest of the modules of a classical filter, of ``Filter`` and of its system, and of its settings."""
+    sources = {inspect.getsourcefile(type(filt)), inspect.getsourcefile(type(system)), inspect.getsourcefile(Filter)}
+    settings = sorted((k, v) for k, v in vars(filt).items() if isinstance(v, (bool, int, float, str)))
+    return checkpoint_fingerprint(sources) + hashlib.sha1(repr(settings).encode()).hexdigest()[:6]
+
+
+def checkpoint_fingerprint(paths) -> str:
+    """A short digest of the given files' bytes: a study cache keyed by it is never stale after retraining."""
+    digest = hashlib.sha1()
+    for path in sorted(Path(p) for p in paths):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:10]

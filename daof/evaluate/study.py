@@ -11,7 +11,6 @@ gaps before any filter sees them; the cache keeps those results apart from the c
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import re
 from dataclasses import asdict, dataclass, field
@@ -23,7 +22,6 @@ from tensordict import TensorDict
 from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
-from daof.filters.base import Filter
 from daof.train.checkpoint import atomic_save
 from envs.system import StochasticSystem
 
@@ -110,25 +108,6 @@ def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: boo
     return result, estimates.float()
 
 
-def checkpoint_fingerprint(paths) -> str:
-    """A short digest of the given files' bytes: a study cache keyed by it is never stale after retraining."""
-    digest = hashlib.sha1()
-    for path in sorted(Path(p) for p in paths):
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:10]
-
-
-def code_fingerprint(filt, system) -> str:
-    """A short digest of the modules of a filter, of ``Filter`` and of its system, and of its scalar settings.
-
-    The cache version of a filter given none (a classical one), so an edited filter is run again.
-    """
-    sources = {inspect.getsourcefile(type(filt)), inspect.getsourcefile(type(system)), inspect.getsourcefile(Filter)}
-    settings = sorted((k, v) for k, v in vars(filt).items() if isinstance(v, (bool, int, float, str)))
-    return checkpoint_fingerprint(sources) + hashlib.sha1(repr(settings).encode()).hexdigest()[:6]
-
-
 def run_study(
     system: StochasticSystem,
     filters: dict,
@@ -147,8 +126,7 @@ def run_study(
 
     ``dropout``: filter the same simulated data with the measurement gaps it describes instead.
     ``versions``: per filter name, a string that identifies its weights (e.g. a checkpoint digest);
-    it is part of the cache key, so a retrained filter is evaluated again instead of reused. A
-    filter without one is keyed by ``code_fingerprint`` (its code and settings).
+    it is part of the cache key, so a retrained filter is evaluated again instead of reused.
     ``reference``: the filter the ratios and the diverged-run threshold are relative to (the
     protocol's PF-oracle; the exact Kalman filter ``"KF"`` on the linear system).
     """
@@ -168,8 +146,7 @@ def run_study(
     estimates: dict[str, torch.Tensor] = {}
     for i, (name, filt) in enumerate(filters.items(), 1):
         path = _cache_path(cache, name, key.get("dropout")) if cache is not None else None
-        version = (versions or {}).get(name) or code_fingerprint(filt, system)
-        filter_key = {**key, "version": version}
+        filter_key = {**key, "version": (versions or {}).get(name)}
         blob = _read_cache(path, log) if path is not None else None
         if blob is not None and blob["key"] == filter_key:
             results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
