@@ -94,7 +94,11 @@ def main() -> None:
         trainer = load_trainer(args.run, Path(scratch))
     s, filt = trainer.system, trainer.filter
     obs = states_at(trainer, args.step, args.resets)
+    # what a unit action is added to: the prediction (+ the reference gain's update, where used)
     prediction = filt.predict(obs["prev_estimate"], obs["prev_control"])
+    reference = filt.reference_update(obs[filt.input_key], prediction, args.step)
+    if reference is not None:
+        prediction = prediction + reference
     bound = filt.bound_at(args.step)
     actor = filt.estimate(obs[filt.input_key], obs["prev_estimate"], obs["prev_control"], obs["step"]) - prediction
     actor = actor / bound

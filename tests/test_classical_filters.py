@@ -266,17 +266,20 @@ def test_oracle_ordering_on_veh2dof(veh):
 
 @pytest.mark.parametrize("make", [KalmanFilter, UKF])
 def test_covariance_schedule_on_linear_is_the_riccati_recursion_from_the_prior(make, lin):
-    """On a linear-Gaussian system P⁻_t, P⁺_t, S_t do not depend on the data: the schedule is the recursion."""
+    """On a linear-Gaussian system P⁻_t, P⁺_t, S_t, K_t do not depend on the data: the schedule is the recursion."""
     A, C = lin.A.double(), lin.C.double()
     Q, R = lin.process_noise.covariance.double(), lin.measurement_noise.covariance.double()
     P, rows = lin.prior.covariance.double(), {"update": [], "prediction": [], "estimate": [], "innovation": []}
+    gains = []
     for _ in range(12):
         prior = A @ P @ A.T + Q
         S = C @ prior @ C.T + R
-        P = prior - prior @ C.T @ torch.linalg.inv(S) @ C @ prior
+        gains.append(prior @ C.T @ torch.linalg.inv(S))
+        P = prior - gains[-1] @ C @ prior
         for key, cov in (("update", prior - P), ("prediction", prior), ("estimate", P), ("innovation", S)):
             rows[key].append(cov.diagonal().sqrt())
     schedule = make(lin).covariance_schedule(lin.simulate(3, 12, seed=4))
+    rows["gain"] = gains
     for key, expected in rows.items():
         torch.testing.assert_close(schedule[key], torch.stack(expected), rtol=1e-6, atol=1e-9, msg=key)
     assert (schedule["estimate"][0] < lin.prior.covariance.diagonal().sqrt()).all()  # the first update shrinks P

@@ -92,6 +92,59 @@ def test_v1_kalman_bound_follows_the_ukf_update_and_settles_above_the_process_fl
     torch.testing.assert_close(short.correction_scale[10:], f.correction_scale[9:10].expand(SCHEDULE_STEPS - 10, -1))
 
 
+@pytest.mark.parametrize("system", ["linear", "veh2dof"])
+def test_v1_reference_gain_update_is_the_mean_gain_update_plus_the_bounded_residual(system):
+    """reference_gain: x̂_t − f(x̂_{t−1}, u_{t−1}) = K̄_t ν_t + b_t ⊙ a_t with "posterior" b_t = k√P⁺_t;
+    the deterministic filter, the collector's policy in deterministic mode and ``run`` agree."""
+    f = small("DAOF-v1", system=system, reference_gain=True, correction_bound="posterior")
+    schedule = ukf_schedule(f.system, seed=3, runs=4)
+    f.set_schedules(schedule)
+    torch.testing.assert_close(f.reference_gain, schedule["gain"])
+    torch.testing.assert_close(f.correction_scale, f.config.correction_sigmas * schedule["estimate"])
+    env = make_env(system, batch_size=3, window=4, seed=4, max_steps=60)
+    with torch.no_grad():
+        td = env.rollout(60, f.exploration_policy(), break_when_any_done=False)
+    s, rows = f.system, td["step"][..., 0].clamp(max=SCHEDULE_STEPS) - 1
+    prediction = s.f(td["prev_estimate"], td["prev_control"])
+    nu = td["measurement"] - s.g(prediction, td["control"])
+    kalman = (schedule["gain"][rows] @ nu.unsqueeze(-1)).squeeze(-1)
+    expected = (prediction + kalman + f.correction_scale[rows] * td["correction"]).clamp(f.state_low, f.state_high)
+    torch.testing.assert_close(td["action"], expected, atol=1e-6, rtol=0)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        explored = make_env(system, batch_size=3, window=4, seed=4, max_steps=60).rollout(
+            60, f.exploration_policy(), break_when_any_done=False
+        )["action"]
+    with torch.no_grad():
+        filtered = make_env(system, batch_size=3, window=4, seed=4, max_steps=60).rollout(
+            60, f.filter_module(), break_when_any_done=False
+        )["action"]
+    torch.testing.assert_close(explored, filtered)
+    data = s.simulate(3, 20, seed=11)
+    env = make_env(system, batch_size=3, window=4, seed=11, max_steps=20)
+    with torch.no_grad():
+        rolled = env.rollout(20, f.filter_module(), break_when_any_done=False)["action"]
+    torch.testing.assert_close(f.run(data), rolled, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="reference_gain"):
+        FilterConfig(kind="DAOF-v2", system=system, reference_gain=True)
+
+
+def test_v1_reference_gain_with_a_zero_residual_is_the_kalman_filter_on_linear():
+    """On a linear-Gaussian system the UKF's gains are the data-independent K_t of the Kalman filter:
+    with its residual at zero (tanh(0) = 0) DAOF-v1 is that filter, start-up included."""
+    from daof.filters import KalmanFilter
+
+    f = small("DAOF-v1", system="linear", reference_gain=True, correction_bound="posterior")
+    f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
+    last = [m for m in f.policy.mlp if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight.zero_(), last.bias.zero_()
+    data = f.system.simulate(4, SCHEDULE_STEPS + 30, seed=12)
+    ours, kf = f.run(data), KalmanFilter(f.system).run(data).float()
+    torch.testing.assert_close(ours[:, :SCHEDULE_STEPS], kf[:, :SCHEDULE_STEPS], atol=2e-5, rtol=1e-4)
+    # after S steps the gain is held at K_S, which is within 0.3 % of the RMSE of the still-settling K_t
+    assert ((ours - kf).abs().amax((0, 1)) < 3e-3 * f.system.error_scale).all()
+
+
 def test_v1_innovation_input_is_the_scaled_innovation_of_the_newest_frame():
     """ν_t = y_t − g(f(x̂_{t−1}, u_{t−1}), u_t) from the env's keys, divided by √S_t of its step, enters the MLP."""
     f = small("DAOF-v1")

@@ -7,6 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
@@ -304,3 +305,102 @@ def test_an_unknown_critic_form_is_refused(tmp_path):
     cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "cubic"})
     with pytest.raises(ValueError, match="critic form must be one of"):
         DSACTTrainer(cfg)
+
+
+RESIDUAL = {
+    "network.reference_gain": True,
+    "network.correction_bound": "posterior",
+    "network.critic_form": "quadratic",
+    "reward.baseline": "zero_action",
+}
+
+
+def test_a_residual_run_starts_at_the_reference_filter_and_its_critic_prefers_nothing_yet(tmp_path):
+    """reference_gain: the actor's residual starts at 0 (the deterministic filter is the mean-gain update)
+    with the entropy target's exploration std; a quadratic critic's m(h) starts at 0 too."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **RESIDUAL))
+    f = trainer.filter
+    data = trainer.system.simulate(2, 30, seed=3)
+    with torch.no_grad():
+        loc, scale = f.policy(*[trainer.env.reset()[k] for k in f.policy_in_keys])
+        torch.testing.assert_close(loc, torch.zeros_like(loc))
+        torch.testing.assert_close(scale, trainer.exploration_std().expand_as(scale))
+        last = trainer.critic.module.mlp[-1]
+        n = trainer.system.state_dim
+        assert (last.weight[2 : 2 + n] == 0).all() and (last.bias[2 : 2 + n] == 0).all()
+    steps = torch.arange(1, 31).clamp(max=f.correction_scale.shape[0]) - 1
+    estimates, prev = f.run(data), f.system.prior.mean.expand(2, -1)
+    for t in range(30):  # x̂_t = x̂⁻_t + K̄_t ν_t: the filter is the reference alone
+        prediction = f.system.f(prev, data["prev_control"][:, t])
+        nu = data["measurement"][:, t] - f.system.g(prediction, data["control"][:, t])
+        expected = (prediction + (f.reference_gain[steps[t]] @ nu.unsqueeze(-1)).squeeze(-1)).clamp(
+            f.state_low, f.state_high
+        )
+        torch.testing.assert_close(estimates[:, t], expected, atol=1e-6, rtol=1e-5)
+        prev = estimates[:, t]
+
+
+def test_the_zero_action_baseline_takes_the_reward_of_the_zero_update_off(tmp_path):
+    """reward.baseline=zero_action: r' = r(a) − r(0) per stored transition, with r(0) the reward of
+    x̂(0) = x̂⁻ + K̄ν at the step's weights; it needs γ = 0 and a filter that acts by updates."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "b", **{**RESIDUAL, "collector.total_frames": 300}))
+    trainer.train()
+    batch = trainer.buffer.storage.get(torch.arange(len(trainer.buffer)))
+    f, weights = trainer.filter, trainer.base_env.reward_weights
+    rows = batch["step"][..., 0].clamp(max=len(weights)) - 1
+    prediction = f.system.f(batch["prev_estimate"], batch["prev_control"])
+    nu = batch["measurement"] - f.system.g(prediction, batch["control"])
+    zero = (prediction + (f.reference_gain[rows] @ nu.unsqueeze(-1)).squeeze(-1)).clamp(f.state_low, f.state_high)
+    scored = (prediction + (f.reference_gain[rows] @ nu.unsqueeze(-1)).squeeze(-1)) + f.correction_scale[rows] * batch[
+        "correction"
+    ]
+    scored = scored.clamp(f.state_low, f.state_high)
+    x, w = batch["true_state"], weights[rows]
+    expected = -((x - scored).pow(2) * w).sum(-1, keepdim=True) + ((x - zero).pow(2) * w).sum(-1, keepdim=True)
+    torch.testing.assert_close(batch["next", "reward"], expected, atol=1e-5, rtol=1e-4)
+    with pytest.raises(ValueError, match="gamma=0"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "g", **{**RESIDUAL, "loss.gamma": 0.5}))
+    with pytest.raises(ValueError, match="reward.baseline must be one of"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "u", **{"reward.baseline": "average"}))
+    with pytest.raises(ValueError, match="acts by updates"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "v2", version="v2", **{"reward.baseline": "zero_action"}))
+
+
+def test_the_actor_waits_for_actor_start_frames_and_deterministic_feedback_runs_the_loop(tmp_path):
+    """optim.actor_start_frames: before it only the critics learn (actor and α untouched); with
+    collector.feedback=deterministic the windows carry the deterministic estimates (the loop the
+    deployed filter runs), while the rewards score the sampled ones."""
+    changes = {**RESIDUAL, "collector.total_frames": 600, "optim.actor_start_frames": 400}
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **changes, **{"collector.feedback": "deterministic"}))
+    actor = {k: v.clone() for k, v in trainer.filter.policy.state_dict().items()}
+    critic = trainer.loss.qvalue_network_params.data.clone()
+    alpha = trainer.loss.log_alpha.item()
+    history = []
+    after_batch = trainer.after_batch
+
+    def record(*args):
+        state = trainer.filter.policy.state_dict()
+        history.append((trainer.frames, any((state[k] != v).any() for k, v in actor.items())))
+        after_batch(*args)
+
+    trainer.after_batch = record
+    trainer.train()
+    moved = [frames for frames, changed in history if changed]
+    assert moved and min(moved) >= 400 and all(changed for frames, changed in history if frames > 400)
+    assert any((v != critic[k]).any() for k, v in trainer.loss.qvalue_network_params.data.items(True, True))
+    assert trainer.loss.log_alpha.item() != alpha
+    # the fed-back estimates are the deterministic filter's: a rollout of the collector's policy
+    # gives the same windows as one of the filter module
+    env = trainer.env
+    env.set_seed(5)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # as in the collector
+        explored = env.rollout(12, trainer.filter.exploration_policy("deterministic"), break_when_any_done=False)
+    env.set_seed(5)
+    with torch.no_grad():
+        filtered = env.rollout(12, trainer.filter.filter_module(), break_when_any_done=False)
+    torch.testing.assert_close(explored["next", "prev_estimate"], filtered["next", "prev_estimate"])
+    assert not torch.equal(explored["action"], filtered["action"])  # what was scored was sampled
+    with pytest.raises(ValueError, match="gamma=0"):
+        DSACTTrainer(
+            tiny_cfg("config.yaml", tmp_path / "g", **{"collector.feedback": "deterministic", "loss.gamma": 0.5})
+        )

@@ -245,12 +245,13 @@ class _KalmanBase(Filter):
         P⁻_t; ``estimate``: P⁺_t (each [steps, n]); ``innovation``: S_t, that of y_t − ŷ_t
         ([steps, m]). All are wide in the start-up, when the prior is wide, and small once P has
         settled. DAOF training sizes its update bound, inputs and rewards from them
-        (``daof.train.schedules``). Needs complete data.
+        (``daof.train.schedules``). ``gain``: the mean Kalman gain K_t itself ([steps, n, m], not a
+        square root). Needs complete data.
         """
         y, u_prev, u = (v.detach().double().cpu().numpy() for v in self.validate(data))
         if np.isnan(y).any():
             raise ValueError(f"{self.name}.covariance_schedule needs data without missing measurements")
-        sums = {key: 0.0 for key in ("update", "prediction", "estimate", "innovation")}
+        sums = {key: 0.0 for key in ("update", "prediction", "estimate", "innovation", "gain")}
         for r in range(y.shape[0]):
             kf = self._make()
             rows = {key: [] for key in sums}
@@ -261,8 +262,11 @@ class _KalmanBase(Filter):
                 rows["prediction"].append(np.diag(kf.P_prior))
                 rows["estimate"].append(np.diag(kf.P_post))
                 rows["innovation"].append(np.diag(kf.S))
+                rows["gain"].append(np.array(kf.K, dtype=float))
             sums = {key: sums[key] + np.array(rows[key]) for key in sums}
-        return {key: torch.from_numpy(np.sqrt(np.maximum(v / y.shape[0], 0.0))) for key, v in sums.items()}
+        means = {key: v / y.shape[0] for key, v in sums.items()}
+        schedule = {key: torch.from_numpy(np.sqrt(np.maximum(v, 0.0))) for key, v in means.items() if key != "gain"}
+        return {**schedule, "gain": torch.from_numpy(means["gain"])}
 
 
 class KalmanFilter(_KalmanBase):

@@ -3,7 +3,9 @@
 * DAOF-v2: x̂_t = π(h_t^N)                          (model-free; or, with ``v2_action="increment"``,
   x̂_t = x̂_{t−1} + b_t ⊙ π(h_t^N), the same function class with a bound b_t sized from data)
 * DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N)  (model predictor + learned update,
-  π ∈ [−1, 1]ⁿ, the bound b_t sized from the noise: see ``FilterConfig.correction_bound``)
+  π ∈ [−1, 1]ⁿ, the bound b_t sized from the noise: see ``FilterConfig.correction_bound``; with
+  ``reference_gain`` the update is K̄_t ν_t + b_t ⊙ π(h_t^N), a learned residual on the update
+  of a UKF's mean gain at step t)
 * SLF:     x̂_t = φ(y_{t−N+1..t}, u_{t−N+1..t})     (open loop, trained by regression)
 
 One ``LearnedFilter`` holds the network (window normaliser → MLP → (loc, log σ)) and gives
@@ -26,6 +28,7 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from daof.filters.base import Filter
+from envs.filtering_env import FEEDBACK_KEY
 from envs.history import HISTORY_KEY, PADDINGS
 from envs.registry import make_system
 from envs.system import StochasticSystem
@@ -33,8 +36,10 @@ from envs.system import StochasticSystem
 __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
-CORRECTION_BOUNDS = ("kalman", "process")
+CORRECTION_BOUNDS = ("kalman", "process", "posterior")
 V2_ACTIONS = ("estimate", "increment")
+#: what an exploring filter's closed loop carries: its sampled estimate or its deterministic one
+FEEDBACKS = ("sampled", "deterministic")
 #: what a learned filter reads for a missing measurement channel (``LearnedFilter.missing_fill``)
 MISSING_FILLS = ("hold", "prediction")
 #: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
@@ -57,9 +62,17 @@ class FilterConfig:
     #: DAOF-v1: the update is bounded to ± b_t = correction_sigmas · σ_t per state, where σ_t is
     #: "process": sqrt(diag Q) at every step;
     #: "kalman": max(sqrt(diag Q), the std of a UKF's own update at step t), which is wide in the
-    #: start-up, when the prior's error has to be pulled in, and settles at sqrt(diag Q) or above
+    #: start-up, when the prior's error has to be pulled in, and settles at sqrt(diag Q) or above;
+    #: "posterior": a UKF's estimate error std sqrt(diag P⁺_t), the size of what is left to correct
+    #: after a Kalman update (meant for ``reference_gain``)
     correction_sigmas: float = 4.0
     correction_bound: str = "kalman"
+    #: DAOF-v1: the update is K̄_t ν_t + b_t ⊙ π(h_t), with K̄_t a UKF's mean Kalman gain at step t
+    #: (``set_schedules``) and ν_t the innovation of the prediction. π(h_t) is still a function of the
+    #: window alone; what it learns is the residual of a gain-scheduled Kalman update, so in the
+    #: start-up, where that update is 5× the error left after it (on ``linear``), the action no longer
+    #: has to place the large update to within a few percent of its range (docs/linear_check.md)
+    reference_gain: bool = False
     #: closed-loop filters also read the start-up feature ρ_t (see ``startup_feature``)
     startup_input: bool = True
     #: DAOF-v1 also reads its newest innovation ν_t = y_t − g(f(x̂_{t−1}, u_{t−1}), u_t), which it
@@ -98,6 +111,8 @@ class FilterConfig:
             raise ValueError(f"v2_action must be one of {V2_ACTIONS}, got {self.v2_action!r}")
         if self.correction_bound not in CORRECTION_BOUNDS:
             raise ValueError(f"correction_bound must be one of {CORRECTION_BOUNDS}, got {self.correction_bound!r}")
+        if self.reference_gain and self.kind != "DAOF-v1":
+            raise ValueError("reference_gain is DAOF-v1's: it needs the model's innovation")
         if self.missing_mask and self.kind == "DAOF-v1":
             raise ValueError("missing_mask is for the model-free filters: DAOF-v1 reads a gap as its prediction")
 
@@ -262,6 +277,8 @@ class LearnedFilter(nn.Module, Filter):
             self.register_buffer("correction_scale", floor.float().expand(SCHEDULE_STEPS, n).clone())
         else:
             low, high = s.state_low.clone(), s.state_high.clone()
+        if config.reference_gain:  # only then: checkpoints saved before the option existed load as they are
+            self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, n, s.measurement_dim))
         self.register_buffer("low", low.float())
         self.register_buffer("high", high.float())
         # every estimate stays in the system's plausible state range (the env's action spec)
@@ -368,22 +385,36 @@ class LearnedFilter(nn.Module, Filter):
         """DAOF-v1's per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
 
         The update bound b_t = correction_sigmas · max(sqrt(diag Q), schedule["update"]_t) (for
-        the "kalman" bound) and the innovation scale √diag S_t = schedule["innovation"]_t (with the
-        innovation input). A shorter schedule is held at its last row. No-op for the other kinds.
-        Stored in the checkpoint.
+        the "kalman" bound; schedule["estimate"]_t for "posterior"), the innovation scale √diag S_t
+        = schedule["innovation"]_t (with the innovation input) and, with ``reference_gain``, the gain
+        K̄_t = schedule["gain"]_t. A shorter schedule is held at its last row. No-op for the other
+        kinds. Stored in the checkpoint.
         """
         if self.config.kind != "DAOF-v1":
             return
 
         def rows(values: torch.Tensor) -> torch.Tensor:
             values = values.to(self.correction_scale)[:SCHEDULE_STEPS]
-            return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), -1)])
+            return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
 
+        sigmas = self.config.correction_sigmas
         if self.config.correction_bound == "kalman":
             floor = self.system.process_noise.covariance.diagonal().sqrt().to(self.correction_scale)
-            self.correction_scale.copy_(self.config.correction_sigmas * torch.maximum(rows(schedule["update"]), floor))
+            self.correction_scale.copy_(sigmas * torch.maximum(rows(schedule["update"]), floor))
+        elif self.config.correction_bound == "posterior":
+            self.correction_scale.copy_(sigmas * rows(schedule["estimate"]).clamp_min(1e-12))
+        if self.config.reference_gain:
+            self.reference_gain.copy_(rows(schedule["gain"]))
         if self.innovation_input:
             self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
+
+    def reference_update(self, window: torch.Tensor, prediction: torch.Tensor, step, nu=None) -> torch.Tensor | None:
+        """K̄_t ν_t, the update of the reference gain (``reference_gain``), or None without it."""
+        if not self.config.reference_gain:
+            return None
+        if nu is None:
+            nu = self.innovation(window, prediction)
+        return (schedule_row(self.reference_gain, step) @ nu.unsqueeze(-1)).squeeze(-1)
 
     def bound_at(self, step) -> torch.Tensor:
         """DAOF-v1's bound b_t for ``step`` t ≥ 1 (an int, a [..., 1] integer tensor, or None: settled)."""
@@ -416,28 +447,45 @@ class LearnedFilter(nn.Module, Filter):
             return_log_prob=False,
         )
 
-    def _add_prediction(self, correction, prev_estimate, prev_control, step, prediction=None):
-        """x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ correction, kept in the plausible state range.
+    def _add_prediction(self, correction, prev_estimate, prev_control, step, window=None, prediction=None, nu=None):
+        """x̂_t = f(x̂_{t−1}, u_{t−1}) (+ K̄_t ν_t) + b_t ⊙ correction, kept in the plausible state range.
 
         Without the clamp an untrained update can push the predictor outside the region where
         the vehicle model is stable, and the estimate then runs away for the rest of the episode.
+        ``window`` (h_t) or ``nu`` (ν_t) is needed with ``reference_gain`` only.
         """
         if prediction is None:
             prediction = self.predict(prev_estimate, prev_control)
         estimate = torch.addcmul(prediction, self.bound_at(step), correction)
+        reference = self.reference_update(window, prediction, step, nu)
+        if reference is not None:
+            estimate = estimate + reference
         return torch.clamp(estimate, self.state_low, self.state_high)
 
-    def exploration_policy(self) -> TensorDictSequential:
-        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction."""
-        actor = self.stochastic_actor()
-        if not self.acts_by_update:
-            return TensorDictSequential(actor)
-        add = TensorDictModule(
-            self._add_prediction,
-            in_keys=["correction", "prev_estimate", "prev_control", "step"],
-            out_keys=["action"],
-        )
-        return TensorDictSequential(actor, add)
+    def exploration_policy(self, feedback: str = "sampled") -> TensorDictSequential:
+        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction.
+
+        ``feedback="deterministic"`` also writes the deterministic estimate (the squashed loc) under
+        ``FEEDBACK_KEY``: the env scores the sampled estimate and feeds the deterministic one back.
+        """
+        if feedback not in FEEDBACKS:
+            raise ValueError(f"feedback must be one of {FEEDBACKS}, got {feedback!r}")
+        modules = [self.stochastic_actor()]
+        extra = ["prev_estimate", "prev_control", "step", self.input_key]
+        if self.acts_by_update:
+            modules.append(TensorDictModule(self._add_prediction, in_keys=["correction", *extra], out_keys=["action"]))
+        if feedback == "deterministic":
+            modules.append(
+                TensorDictModule(self._deterministic_from_loc, in_keys=["loc", *extra], out_keys=[FEEDBACK_KEY])
+            )
+        return TensorDictSequential(*modules)
+
+    def _deterministic_from_loc(self, loc, prev_estimate, prev_control, step, window):
+        """The deterministic estimate from the actor's pre-squash loc (what ``estimate`` gives)."""
+        action = torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(loc))
+        if self.acts_by_update:
+            return self._add_prediction(action, prev_estimate, prev_control, step, window)
+        return action
 
     def filter_module(self) -> TensorDictModule:
         """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for an update, t where used), writes ``action``."""
@@ -490,9 +538,9 @@ class LearnedFilter(nn.Module, Filter):
         by_update = self.acts_by_update
         prediction = self.predict(prev_estimate, prev_control) if by_update else None
         # ν_t and ρ_t times their weight columns are a per-step bias of the first layer
+        nu = self.innovation(window, prediction) if w_nu is not None or self.config.reference_gain else None
         if w_nu is not None:
-            nu = self.innovation(window, prediction) / schedule_row(self.policy.innovation_scale, step)
-            b0 = b0 + nu @ w_nu.T
+            b0 = b0 + (nu / schedule_row(self.policy.innovation_scale, step)) @ w_nu.T
         rho = startup_feature(step) if w_rho is not None and step is not None else 0.0
         if not isinstance(rho, float) or rho > 0.0:  # a settled streaming step skips it (+0 is exact)
             b0 = b0 + rho * w_rho
@@ -505,7 +553,7 @@ class LearnedFilter(nn.Module, Filter):
         if squash is not None:
             out = torch.addcmul(squash[0], squash[1], out)
         if by_update:
-            out = self._add_prediction(out, prev_estimate, prev_control, step, prediction)
+            out = self._add_prediction(out, prev_estimate, prev_control, step, window, prediction, nu)
         return out
 
     @torch.inference_mode()

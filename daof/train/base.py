@@ -57,6 +57,7 @@ class FilterTrainer:
                 correction_bound=str(net.get("correction_bound", "kalman")),
                 startup_input=bool(net.get("startup_input", True)),
                 innovation_input=bool(net.get("innovation_input", True)),
+                reference_gain=bool(net.get("reference_gain", False)),
                 window_padding=str(net.get("window_padding", "same")),
                 v2_action=str(net.get("v2_action", "estimate")),
                 missing_mask=bool(net.get("missing_mask", False)),

@@ -28,10 +28,11 @@ from torchrl.objectives import SoftUpdate
 
 from daof.filters.learned import startup_feature
 from daof.train.base import FilterTrainer
+from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import make_critic
 from daof.train.sampling import WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
-from envs.filtering_env import FilteringEnv
+from envs.filtering_env import FEEDBACK_KEY, FilteringEnv
 from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
@@ -39,7 +40,7 @@ from losses import DSACTLoss
 __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
-_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state"]
+_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state", FEEDBACK_KEY]
 _PRIORITY_KEY = "sample_priority"
 #: largest exploration std of the automatic entropy target, in units of the action's half-range
 MAX_EXPLORATION_STD = 0.3
@@ -57,6 +58,8 @@ class DSACTTrainer(FilterTrainer):
             raise ValueError(f"version must be 'v1' or 'v2', got {cfg.version!r}")
         super().__init__(cfg, kind)
         self._make_schedules()
+        if self.filter.config.reference_gain:
+            self._start_at_the_reference()
         self._make_loss()
         self._make_data()
 
@@ -111,6 +114,31 @@ class DSACTTrainer(FilterTrainer):
         )
         self.optim_alpha = torch.optim.Adam([self.loss.log_alpha], lr=float(o.lr_alpha))
 
+    def _start_at_the_reference(self) -> None:
+        """A residual policy starts at zero: the deterministic filter is the reference-gain update itself.
+
+        The actor's last layer is zeroed (loc = 0, so tanh(loc) = 0) and its log-std bias set to the
+        exploration std of the entropy target, so training starts from the filter that the update
+        of a UKF's mean gain gives (on veh2dof as accurate as the UKF itself, docs/veh2dof_training.md)
+        and explores around it, instead of from a random update.
+        """
+        if self.cfg.loss.get("target_entropy", "auto") != "auto":
+            return
+        last = [m for m in self.filter.policy.mlp if isinstance(m, torch.nn.Linear)][-1]
+        n = self.system.state_dim
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias[:n].zero_()
+            last.bias[n:].copy_(self.exploration_std().log())
+
+    def exploration_std(self) -> torch.Tensor:
+        """Per state, the std of the entropy target's exploration noise in action units (``target_entropy``)."""
+        width = self.filter.high - self.filter.low
+        k = float(self.cfg.loss.get("exploration_std", 0.4))
+        if k <= 0:
+            raise ValueError(f"loss.exploration_std must be > 0, got {k}")
+        return torch.minimum(k * self.system.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
+
     def target_entropy(self) -> float:
         """Entropy of exploration noise of ``loss.exploration_std`` error scales per state.
 
@@ -135,11 +163,7 @@ class DSACTTrainer(FilterTrainer):
                     f"loss.target_entropy={fixed} is unreachable: actions in this range have entropy < {most:.3g}"
                 )
             return float(fixed)
-        k = float(self.cfg.loss.get("exploration_std", 0.4))
-        if k <= 0:
-            raise ValueError(f"loss.exploration_std must be > 0, got {k}")
-        std = torch.minimum(k * self.system.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
-        return float((std * math.sqrt(2 * math.pi * math.e)).log().sum())
+        return float((self.exploration_std() * math.sqrt(2 * math.pi * math.e)).log().sum())
 
     def _make_data(self) -> None:
         cfg = self.cfg
@@ -151,6 +175,15 @@ class DSACTTrainer(FilterTrainer):
             system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )
         self.base_env = env
+        self.feedback = str(c.get("feedback", "sampled"))
+        if self.feedback == "deterministic" and float(cfg.loss.gamma) != 0.0:
+            raise ValueError("collector.feedback=deterministic: the action leaves the next state alone, so gamma=0")
+        baseline = str(cfg.get("reward", {}).get("baseline", "none"))
+        if baseline not in BASELINES:
+            raise ValueError(f"reward.baseline must be one of {BASELINES}, got {baseline!r}")
+        if baseline != "none" and float(cfg.loss.gamma) != 0.0:
+            raise ValueError("reward.baseline keeps the actor's objective only with loss.gamma=0")
+        self.baseline = ZeroActionBaseline(self.filter, env.reward_weights) if baseline != "none" else None
         self.env = with_window(
             env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding, missing_flags=flags
         )
@@ -174,7 +207,7 @@ class DSACTTrainer(FilterTrainer):
         frames_per_batch = int(c.env_batch) * int(c.steps_per_batch)
         return Collector(
             self.env,
-            self.filter.exploration_policy(),
+            self.filter.exploration_policy(self.feedback),
             frames_per_batch=frames_per_batch,
             total_frames=max(remaining, frames_per_batch),
             auto_register_policy_transforms=False,
@@ -205,33 +238,39 @@ class DSACTTrainer(FilterTrainer):
         """One DSAC-T gradient update on a sampled batch.
 
         Critics step every update; the actor, α and the Polyak-averaged targets only every
-        ``delay``-th update, where the actor loss is computed at all. Every backward runs before
-        any optimiser step, because the actor loss reads the (detached) critic weights.
+        ``delay``-th update, where the actor loss is computed at all, and not before
+        ``optim.actor_start_frames`` (the critics first learn the initial policy's values). Every
+        backward runs before any optimiser step, because the actor loss reads the (detached) critic weights.
         """
         batch = self.buffer.sample()
         delayed = self.updates % int(self.cfg.loss.delay) == 0
-        if delayed:
+        acting = delayed and self.frames >= int(self.cfg.optim.get("actor_start_frames", 0))
+        if acting:
             out = self.loss(batch)
         else:
             loss_q, meta = self.loss.qvalue_loss(batch)
             out = {"loss_qvalue": loss_q, **meta}
         self.optim_critic.zero_grad(set_to_none=True)
         out["loss_qvalue"].backward()
-        if delayed:
+        if acting:
             self.optim_actor.zero_grad(set_to_none=True)
             self.optim_alpha.zero_grad(set_to_none=True)
             (out["loss_actor"] + out["loss_alpha"]).backward()
         self.optim_critic.step()
-        if delayed:
+        if acting:
             self.optim_actor.step()
             self.optim_alpha.step()
+        if delayed:
             self.target_updater.step()
         self.updates += 1
         return out
 
     def to_replay(self, batch: TensorDictBase) -> TensorDictBase:
-        """A collected batch as flat replay transitions: unused keys dropped, the start-up priority set."""
+        """A collected batch as flat replay transitions: unused keys dropped, the reward baseline
+        taken off (``reward.baseline``), the start-up priority set."""
         batch = batch.reshape(-1).exclude(*_DROP_KEYS)
+        if self.baseline is not None:
+            batch = self.baseline.subtract(batch)
         if self.startup_priority > 0:
             rho = startup_feature(batch["step"]).squeeze(-1)
             batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * rho**2
@@ -262,6 +301,7 @@ class DSACTTrainer(FilterTrainer):
                 if self.frames >= total:
                     break
                 with timeit("collect"):
+                    reward = batch["next", "reward"].mean().item()  # what the filter earns, before any baseline
                     batch = self.to_replay(batch)
                     self.buffer.extend(batch)
                     self.frames += batch.numel()
@@ -271,7 +311,7 @@ class DSACTTrainer(FilterTrainer):
                     with timeit("update"):
                         for _ in range(updates_per_batch):
                             metrics = {**metrics, **self._update()}
-                log = {"train/reward": batch["next", "reward"].mean().item(), "train/updates": self.updates}
+                log = {"train/reward": reward, "train/updates": self.updates}
                 log.update({f"train/{k}": float(metrics[k].detach().mean()) for k in _LOGGED if k in metrics})
                 self.after_batch(bar, batch.numel(), log, total)
         finally:

@@ -49,6 +49,11 @@ class FilterCritic(nn.Module):
             num_cells=num_cells,
             activation_class=nn.GELU,
         )
+        if quadratic:  # m(h) starts at 0: no action is preferred to the filter's zero action before data say so
+            with torch.no_grad():
+                last = self.mlp[-1]
+                last.weight[2 * reward_terms : 2 * reward_terms + n].zero_()
+                last.bias[2 * reward_terms : 2 * reward_terms + n].zero_()
 
     def forward(self, window: torch.Tensor, action: torch.Tensor, step=None) -> torch.Tensor:
         actor = self._actor[0]
