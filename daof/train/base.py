@@ -57,7 +57,8 @@ class FilterTrainer:
                 correction_bound=str(net.get("correction_bound", "kalman")),
                 startup_input=bool(net.get("startup_input", True)),
                 innovation_input=bool(net.get("innovation_input", True)),
-                reference_gain=bool(net.get("reference_gain", False)),
+                # DAOF-v1's alone: a config shared by v1 and v2 runs (the recipes') may set it
+                reference_gain=bool(net.get("reference_gain", False)) and kind == "DAOF-v1",
                 window_padding=str(net.get("window_padding", "same")),
                 v2_action=str(net.get("v2_action", "estimate")),
                 missing_mask=bool(net.get("missing_mask", False)),
