@@ -98,6 +98,7 @@ class DSACTTrainer(FilterTrainer):
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
             mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
+            actor_critics=str(cfg.loss.get("actor_critics", "online")),
             reward_components=terms,
         )
         self.loss.set_keys(action=self.filter.action_key)
