@@ -405,3 +405,17 @@ def test_learned_filters_reject_bad_input_with_one_line(kind, veh):
             f.run(data)
         message = str(error.value)
         assert message.startswith(f"{kind}: ") and key in message and "\n" not in message, (case, message)
+
+
+def test_learning_curves_come_from_the_whole_run_not_only_up_to_the_best_checkpoint(tmp_path):
+    """best.pt holds the validation history only up to the best; the curve is read from final.pt beside it."""
+    from daof.evaluate.experiment import learning_curves
+    from daof.filters.learned import FilterConfig, LearnedFilter, load_filter
+
+    f = LearnedFilter(FilterConfig(kind="DAOF-v1", system="veh2dof", window=2, num_cells=8))
+    history = [{"frames": k * 100, "rmse_beta": 1.0 / (k + 1), "rmse_yaw_rate": 2.0} for k in range(4)]
+    f.save(tmp_path / "best.pt", extra={"history": history[:2]})
+    only_best = load_filter(tmp_path / "best.pt")
+    assert learning_curves({"DAOF-v1": only_best}) == {"DAOF-v1": history[:2]}
+    f.save(tmp_path / "final.pt", extra={"history": history})
+    assert learning_curves({"DAOF-v1": load_filter(tmp_path / "best.pt")}) == {"DAOF-v1": history}

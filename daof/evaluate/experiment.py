@@ -14,6 +14,7 @@ import inspect
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import torch
 from omegaconf import DictConfig, ListConfig
 
 from daof.evaluate.jobs import TrainingJob, run_jobs
@@ -143,9 +144,21 @@ def run_trained_study(
 
 
 def learning_curves(filters: dict, names=None) -> dict[str, list[dict]]:
-    """Validation history saved in each learned filter's checkpoint (name -> list of records)."""
+    """Validation history of each learned filter's training run (name -> list of records).
+
+    From the run's ``final.pt`` beside the loaded checkpoint where there is one: a ``best.pt``
+    holds the history only up to the best validation, so the curve would stop there.
+    """
     names = names if names is not None else list(filters)
-    return {name: getattr(filters[name], "extra", {}).get("history", []) for name in names if name in filters}
+    return {name: _training_history(filters[name]) for name in names if name in filters}
+
+
+def _training_history(filt) -> list[dict]:
+    path = getattr(filt, "path", None)
+    final = Path(path).with_name("final.pt") if path is not None else None
+    if final is not None and final.is_file():
+        return torch.load(final, map_location="cpu", weights_only=False).get("extra", {}).get("history", [])
+    return getattr(filt, "extra", {}).get("history", [])
 
 
 def training_costs(jobs: dict[str, TrainingJob]) -> dict[str, dict]:

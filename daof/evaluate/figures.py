@@ -101,11 +101,12 @@ def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path,
         for name, history in curves.items():
             if history:
                 ax.plot([h["frames"] for h in history], [h[f"rmse_{state}"] for h in history], marker=".", label=name)
-        for label, values in (references or {}).items():
-            ax.axhline(values[j], ls="--", lw=0.9, color="gray")
-            ax.text(ax.get_xlim()[0], values[j], f" {label}", fontsize=7, color="gray", va="bottom")
         ax.set_yscale("log")
         ax.set_xscale("symlog", linthresh=1e4)
+        ax.set_xlim(left=0)  # training samples are never negative (symlog's autoscale pads below 0)
+        for label, values in (references or {}).items():
+            ax.axhline(values[j], ls="--", lw=0.9, color="gray")
+            ax.text(0, values[j], f" {label}", fontsize=7, color="gray", va="bottom")
         ax.xaxis.set_major_formatter(_thousands)
         ax.set_xlabel("training samples (env steps)")
         ax.set_ylabel(f"validation RMSE {state}" + (f" [{units[j]}]" if units else ""))

@@ -637,4 +637,5 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
         first = str(error).strip().splitlines()[-1].strip()
         raise ValueError(f"checkpoint {path} does not fit this filter's layout ({first})") from None
     module.extra = blob.get("extra", {})
+    module.path = path
     return module.eval()
