@@ -12,9 +12,6 @@ since the reset: 1 right after it; DAOF-v1 sizes its update bound by it). The tr
 it, and a filter that did would be cheating. A system with gaps (``envs.gaps.GappySystem``) adds
 ``missing``, the 0/1 flags of the channels whose measurement is a held value.
 
-An exploring policy may also write ``feedback_estimate`` (``FEEDBACK_KEY``): the estimate that the
-next observation carries as x̂_t instead of the scored ``action``.
-
 Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (about
 the RMSE of a near-optimal filter per state), so a near-optimal filter earns about −1 per step
 and both states count equally relative to what is achievable.
@@ -30,13 +27,7 @@ from torchrl.envs import EnvBase
 from envs.gaps import MISSING_KEY
 from envs.system import StochasticSystem
 
-__all__ = ["FEEDBACK_KEY", "FilteringEnv", "make_env"]
-
-#: optional action-side key: the estimate fed back as x̂_t into the next observation instead of the
-#: scored ``action``. An exploring policy can score a sampled estimate while its closed loop runs on
-#: its deterministic one, so the windows it learns on are those the deployed filter meets. The
-#: next state then no longer depends on the scored action: meant for γ = 0 (``daof.train.dsac``).
-FEEDBACK_KEY = "feedback_estimate"
+__all__ = ["FilteringEnv", "make_env"]
 
 
 class FilteringEnv(EnvBase):
@@ -170,12 +161,7 @@ class FilteringEnv(EnvBase):
             weights = weights[self._sim["t"].clamp(1, len(weights)) - 1]
         reward_per_state = -(error.pow(2) * weights)
         self._sim, self._obs = self.system.advance(self._sim, self.rng)
-        # what the next window carries: the estimate itself, or the deterministic estimate of an
-        # exploring policy that scores a sampled one (``FEEDBACK_KEY``)
-        feedback = tensordict.get(FEEDBACK_KEY, None)
-        if feedback is not None and not torch.isfinite(feedback).all():
-            raise ValueError(f"the fed-back estimate ({FEEDBACK_KEY!r}) is not finite")
-        self._prev_estimate = (estimate if feedback is None else feedback).detach().clone()
+        self._prev_estimate = estimate.detach().clone()
         # sim["t"] counts measured steps; the episode ends after max_steps estimates.
         truncated = (self._sim["t"] > self.max_steps).unsqueeze(-1)
         return TensorDict(

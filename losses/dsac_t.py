@@ -89,9 +89,6 @@ class DSACTLoss(LossModule):
         epsilon: ε in the surrogate's denominators and its (σ̄² + ε) scale.
         tau_b: rate of the moving average σ̄.
         sample_clip: the N(0, 1) draw for z′ is clamped to ±sample_clip before scaling by σ′.
-        actor_critics: which critics the actor climbs, "online" (DSAC-T) or "target" (their Polyak
-            averages, which move by τ per delayed update: an average of the last ~1/τ critics, so
-            the actor follows less of the critics' SGD noise; with γ = 0 the targets are otherwise unused).
         mean_weighting: "variance" (DSAC-T: each sample's mean term weighted by 1/(σ̂² + ε)) or
             "uniform" (least squares on the mean; see ``critic_surrogate``).
         reward_components: K, the length of the reward vector under ``tensor_keys.reward``
@@ -142,7 +139,6 @@ class DSACTLoss(LossModule):
         tau_b: float = 0.005,
         sample_clip: float = 3.0,
         mean_weighting: str = "variance",
-        actor_critics: str = "online",
         reward_components: int = 1,
         delay_actor: bool = True,
         delay_qvalue: bool = True,
@@ -159,9 +155,6 @@ class DSACTLoss(LossModule):
         if mean_weighting not in ("variance", "uniform"):
             raise ValueError(f"mean_weighting must be 'variance' or 'uniform', got {mean_weighting!r}")
         self.mean_weighting = mean_weighting
-        if actor_critics not in ("online", "target") or (actor_critics == "target" and not delay_qvalue):
-            raise ValueError(f"actor_critics must be 'online' or 'target' (with target critics), got {actor_critics!r}")
-        self.actor_critics = actor_critics
         if int(reward_components) < 1:
             raise ValueError(f"reward_components must be >= 1, got {reward_components}")
         self.reward_components = int(reward_components)
@@ -411,10 +404,7 @@ class DSACTLoss(LossModule):
         action, log_prob = self._sample_actor(tensordict, self.actor_network_params)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.tensor_keys.action, action)
-        params = self._cached_detached_qvalue_params
-        if self.actor_critics == "target":
-            params = self.target_qvalue_network_params
-        mu, _ = self._critic_mu_sigma(td_q, params)
+        mu, _ = self._critic_mu_sigma(td_q, self._cached_detached_qvalue_params)
         min_mu = mu.min(0)[0].sum(-1)
         log_prob = log_prob.reshape(min_mu.shape)
         loss = (self._alpha * log_prob - min_mu).mean()

@@ -313,30 +313,3 @@ def test_gamma_zero_targets_are_the_reward_without_bootstrapping(terms):
     slow_q, slow_z = loss.compute_targets(batch)
     torch.testing.assert_close(slow_q, y_q)
     torch.testing.assert_close(slow_z, y_z)
-
-
-def test_the_actor_can_climb_the_target_critics():
-    """actor_critics="target": the actor loss reads the Polyak-averaged critics (equal to the online
-    ones' loss with those weights copied in), reaches the actor only, and is refused without targets."""
-    torch.manual_seed(6)
-    batch = make_batch(16)
-    online, target = make_loss(), make_loss(actor_critics="target")
-    target.load_state_dict(online.state_dict())
-    with torch.no_grad():
-        target.target_qvalue_network_params.apply_(lambda p: p.add_(0.3))
-    torch.manual_seed(7)
-    loss_online, _ = online.actor_loss(batch)
-    torch.manual_seed(7)
-    loss_target, _ = target.actor_loss(batch)
-    assert not torch.isclose(loss_online, loss_target)
-    shifted = make_loss()  # the online loss with the target's critic weights as its online ones
-    shifted.load_state_dict(online.state_dict())
-    with torch.no_grad():
-        shifted.qvalue_network_params.apply_(lambda p: p.add_(0.3))
-    torch.manual_seed(7)
-    torch.testing.assert_close(shifted.actor_loss(batch)[0], loss_target)
-    loss_target.backward()
-    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in target.qvalue_network_params.values(True, True))
-    assert all(p.grad.abs().sum() > 0 for p in target.actor_network_params.values(True, True))
-    with pytest.raises(ValueError, match="actor_critics"):
-        make_loss(actor_critics="average")

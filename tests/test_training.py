@@ -7,7 +7,6 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
@@ -364,43 +363,3 @@ def test_the_zero_action_baseline_takes_the_reward_of_the_zero_update_off(tmp_pa
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "u", **{"reward.baseline": "average"}))
     with pytest.raises(ValueError, match="acts by updates"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "v2", version="v2", **{"reward.baseline": "zero_action"}))
-
-
-def test_the_actor_waits_for_actor_start_frames_and_deterministic_feedback_runs_the_loop(tmp_path):
-    """optim.actor_start_frames: before it only the critics learn (actor and α untouched); with
-    collector.feedback=deterministic the windows carry the deterministic estimates (the loop the
-    deployed filter runs), while the rewards score the sampled ones."""
-    changes = {**RESIDUAL, "collector.total_frames": 600, "optim.actor_start_frames": 400}
-    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **changes, **{"collector.feedback": "deterministic"}))
-    actor = {k: v.clone() for k, v in trainer.filter.policy.state_dict().items()}
-    critic = trainer.loss.qvalue_network_params.data.clone()
-    alpha = trainer.loss.log_alpha.item()
-    history = []
-    after_batch = trainer.after_batch
-
-    def record(*args):
-        state = trainer.filter.policy.state_dict()
-        history.append((trainer.frames, any((state[k] != v).any() for k, v in actor.items())))
-        after_batch(*args)
-
-    trainer.after_batch = record
-    trainer.train()
-    moved = [frames for frames, changed in history if changed]
-    assert moved and min(moved) >= 400 and all(changed for frames, changed in history if frames > 400)
-    assert any((v != critic[k]).any() for k, v in trainer.loss.qvalue_network_params.data.items(True, True))
-    assert trainer.loss.log_alpha.item() != alpha
-    # the fed-back estimates are the deterministic filter's: a rollout of the collector's policy
-    # gives the same windows as one of the filter module
-    env = trainer.env
-    env.set_seed(5)
-    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # as in the collector
-        explored = env.rollout(12, trainer.filter.exploration_policy("deterministic"), break_when_any_done=False)
-    env.set_seed(5)
-    with torch.no_grad():
-        filtered = env.rollout(12, trainer.filter.filter_module(), break_when_any_done=False)
-    torch.testing.assert_close(explored["next", "prev_estimate"], filtered["next", "prev_estimate"])
-    assert not torch.equal(explored["action"], filtered["action"])  # what was scored was sampled
-    with pytest.raises(ValueError, match="gamma=0"):
-        DSACTTrainer(
-            tiny_cfg("config.yaml", tmp_path / "g", **{"collector.feedback": "deterministic", "loss.gamma": 0.5})
-        )

@@ -28,7 +28,6 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from daof.filters.base import Filter
-from envs.filtering_env import FEEDBACK_KEY
 from envs.history import HISTORY_KEY, PADDINGS
 from envs.registry import make_system
 from envs.system import StochasticSystem
@@ -38,8 +37,6 @@ __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 KINDS = {"DAOF-v1": "correction", "DAOF-v2": "action", "SLF": "action"}
 CORRECTION_BOUNDS = ("kalman", "process", "posterior")
 V2_ACTIONS = ("estimate", "increment")
-#: what an exploring filter's closed loop carries: its sampled estimate or its deterministic one
-FEEDBACKS = ("sampled", "deterministic")
 #: what a learned filter reads for a missing measurement channel (``LearnedFilter.missing_fill``)
 MISSING_FILLS = ("hold", "prediction")
 #: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
@@ -462,30 +459,17 @@ class LearnedFilter(nn.Module, Filter):
             estimate = estimate + reference
         return torch.clamp(estimate, self.state_low, self.state_high)
 
-    def exploration_policy(self, feedback: str = "sampled") -> TensorDictSequential:
-        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction.
-
-        ``feedback="deterministic"`` also writes the deterministic estimate (the squashed loc) under
-        ``FEEDBACK_KEY``: the env scores the sampled estimate and feeds the deterministic one back.
-        """
-        if feedback not in FEEDBACKS:
-            raise ValueError(f"feedback must be one of {FEEDBACKS}, got {feedback!r}")
-        modules = [self.stochastic_actor()]
-        extra = ["prev_estimate", "prev_control", "step", self.input_key]
-        if self.acts_by_update:
-            modules.append(TensorDictModule(self._add_prediction, in_keys=["correction", *extra], out_keys=["action"]))
-        if feedback == "deterministic":
-            modules.append(
-                TensorDictModule(self._deterministic_from_loc, in_keys=["loc", *extra], out_keys=[FEEDBACK_KEY])
-            )
-        return TensorDictSequential(*modules)
-
-    def _deterministic_from_loc(self, loc, prev_estimate, prev_control, step, window):
-        """The deterministic estimate from the actor's pre-squash loc (what ``estimate`` gives)."""
-        action = torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(loc))
-        if self.acts_by_update:
-            return self._add_prediction(action, prev_estimate, prev_control, step, window)
-        return action
+    def exploration_policy(self) -> TensorDictSequential:
+        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction."""
+        actor = self.stochastic_actor()
+        if not self.acts_by_update:
+            return TensorDictSequential(actor)
+        add = TensorDictModule(
+            self._add_prediction,
+            in_keys=["correction", "prev_estimate", "prev_control", "step", self.input_key],
+            out_keys=["action"],
+        )
+        return TensorDictSequential(actor, add)
 
     def filter_module(self) -> TensorDictModule:
         """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for an update, t where used), writes ``action``."""

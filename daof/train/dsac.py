@@ -32,7 +32,7 @@ from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import make_critic
 from daof.train.sampling import WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
-from envs.filtering_env import FEEDBACK_KEY, FilteringEnv
+from envs.filtering_env import FilteringEnv
 from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
@@ -40,7 +40,7 @@ from losses import DSACTLoss
 __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
-_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state", FEEDBACK_KEY]
+_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state"]
 _PRIORITY_KEY = "sample_priority"
 #: largest exploration std of the automatic entropy target, in units of the action's half-range
 MAX_EXPLORATION_STD = 0.3
@@ -98,7 +98,6 @@ class DSACTTrainer(FilterTrainer):
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
             mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
-            actor_critics=str(cfg.loss.get("actor_critics", "online")),
             reward_components=terms,
         )
         self.loss.set_keys(action=self.filter.action_key)
@@ -120,8 +119,8 @@ class DSACTTrainer(FilterTrainer):
 
         The actor's last layer is zeroed (loc = 0, so tanh(loc) = 0) and its log-std bias set to the
         exploration std of the entropy target, so training starts from the filter that the update
-        of a UKF's mean gain gives (on veh2dof as accurate as the UKF itself, docs/veh2dof_training.md)
-        and explores around it, instead of from a random update.
+        of a UKF's mean gain gives (the Kalman filter on ``linear``; docs/linear_check.md) and
+        explores around it, instead of from a random update.
         """
         if self.cfg.loss.get("target_entropy", "auto") != "auto":
             return
@@ -176,9 +175,6 @@ class DSACTTrainer(FilterTrainer):
             system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )
         self.base_env = env
-        self.feedback = str(c.get("feedback", "sampled"))
-        if self.feedback == "deterministic" and float(cfg.loss.gamma) != 0.0:
-            raise ValueError("collector.feedback=deterministic: the action leaves the next state alone, so gamma=0")
         baseline = str(cfg.get("reward", {}).get("baseline", "none"))
         if baseline not in BASELINES:
             raise ValueError(f"reward.baseline must be one of {BASELINES}, got {baseline!r}")
@@ -208,7 +204,7 @@ class DSACTTrainer(FilterTrainer):
         frames_per_batch = int(c.env_batch) * int(c.steps_per_batch)
         return Collector(
             self.env,
-            self.filter.exploration_policy(self.feedback),
+            self.filter.exploration_policy(),
             frames_per_batch=frames_per_batch,
             total_frames=max(remaining, frames_per_batch),
             auto_register_policy_transforms=False,
@@ -239,29 +235,26 @@ class DSACTTrainer(FilterTrainer):
         """One DSAC-T gradient update on a sampled batch.
 
         Critics step every update; the actor, α and the Polyak-averaged targets only every
-        ``delay``-th update, where the actor loss is computed at all, and not before
-        ``optim.actor_start_frames`` (the critics first learn the initial policy's values). Every
-        backward runs before any optimiser step, because the actor loss reads the (detached) critic weights.
+        ``delay``-th update, where the actor loss is computed at all. Every backward runs before
+        any optimiser step, because the actor loss reads the (detached) critic weights.
         """
         batch = self.buffer.sample()
         delayed = self.updates % int(self.cfg.loss.delay) == 0
-        acting = delayed and self.frames >= int(self.cfg.optim.get("actor_start_frames", 0))
-        if acting:
+        if delayed:
             out = self.loss(batch)
         else:
             loss_q, meta = self.loss.qvalue_loss(batch)
             out = {"loss_qvalue": loss_q, **meta}
         self.optim_critic.zero_grad(set_to_none=True)
         out["loss_qvalue"].backward()
-        if acting:
+        if delayed:
             self.optim_actor.zero_grad(set_to_none=True)
             self.optim_alpha.zero_grad(set_to_none=True)
             (out["loss_actor"] + out["loss_alpha"]).backward()
         self.optim_critic.step()
-        if acting:
+        if delayed:
             self.optim_actor.step()
             self.optim_alpha.step()
-        if delayed:
             self.target_updater.step()
         self.updates += 1
         return out
