@@ -327,6 +327,11 @@ def test_a_residual_run_starts_at_the_reference_filter_and_its_critic_prefers_no
         last = trainer.critic.module.mlp[-1]
         n = trainer.system.state_dim
         assert (last.weight[2 : 2 + n] == 0).all() and (last.bias[2 : 2 + n] == 0).all()
+    fixed = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "fixed", **RESIDUAL, **{"loss.target_entropy": -3.0}))
+    with torch.no_grad():  # a fixed entropy target: the residual starts at 0 too, with that entropy
+        loc, scale = fixed.filter.policy(*[fixed.env.reset()[k] for k in fixed.filter.policy_in_keys])
+    torch.testing.assert_close(loc, torch.zeros_like(loc))
+    torch.testing.assert_close(scale, torch.full_like(scale, math.exp(-1.5) / math.sqrt(2 * math.pi * math.e)))
     steps = torch.arange(1, 31).clamp(max=f.correction_scale.shape[0]) - 1
     estimates, prev = f.run(data), f.system.prior.mean.expand(2, -1)
     for t in range(30):  # x̂_t = x̂⁻_t + K̄_t ν_t: the filter is the reference alone

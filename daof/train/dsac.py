@@ -122,14 +122,16 @@ class DSACTTrainer(FilterTrainer):
         of a UKF's mean gain gives (the Kalman filter on ``linear``; docs/linear_check.md) and
         explores around it, instead of from a random update.
         """
-        if self.cfg.loss.get("target_entropy", "auto") != "auto":
-            return
-        last = [m for m in self.filter.policy.mlp if isinstance(m, torch.nn.Linear)][-1]
         n = self.system.state_dim
+        if self.cfg.loss.get("target_entropy", "auto") == "auto":
+            std = self.exploration_std()
+        else:  # the same std on every state, with the fixed target's entropy
+            std = torch.full((n,), math.exp(self.target_entropy() / n) / math.sqrt(2 * math.pi * math.e))
+        last = [m for m in self.filter.policy.mlp if isinstance(m, torch.nn.Linear)][-1]
         with torch.no_grad():
             last.weight.zero_()
             last.bias[:n].zero_()
-            last.bias[n:].copy_(self.exploration_std().log())
+            last.bias[n:].copy_(std.log())
 
     def exploration_std(self) -> torch.Tensor:
         """Per state, the std of the entropy target's exploration noise in action units (``target_entropy``)."""
