@@ -419,3 +419,20 @@ def test_learning_curves_come_from_the_whole_run_not_only_up_to_the_best_checkpo
     assert learning_curves({"DAOF-v1": only_best}) == {"DAOF-v1": history[:2]}
     f.save(tmp_path / "final.pt", extra={"history": history})
     assert learning_curves({"DAOF-v1": load_filter(tmp_path / "best.pt")}) == {"DAOF-v1": history}
+
+
+def test_learning_curve_references_are_the_validation_set_numbers_of_the_run(tmp_path):
+    """The lines beside the curves come from the run's summary.json (its validation set), not the study's data."""
+    import json
+
+    from daof.evaluate.experiment import validation_references
+    from daof.filters.learned import FilterConfig, LearnedFilter, load_filter
+
+    f = LearnedFilter(FilterConfig(kind="DAOF-v1", system="veh2dof", window=2, num_cells=8))
+    f.save(tmp_path / "slf" / "best.pt")
+    f.save(tmp_path / "v1" / "best.pt")
+    filters = {name: load_filter(tmp_path / name / "best.pt") for name in ("slf", "v1")}
+    assert validation_references(filters) == {}  # no summary yet: no lines rather than wrong ones
+    (tmp_path / "v1" / "summary.json").write_text(json.dumps({"validation_references": {"UKF": [0.0105, 0.0258]}}))
+    assert validation_references(filters) == {"UKF": [0.0105, 0.0258]}
+    assert validation_references(filters, ["slf"]) == {}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import inspect
+import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -32,6 +33,7 @@ __all__ = [
     "select_scenarios",
     "train",
     "training_costs",
+    "validation_references",
 ]
 
 
@@ -159,6 +161,22 @@ def _training_history(filt) -> list[dict]:
     if final is not None and final.is_file():
         return torch.load(final, map_location="cpu", weights_only=False).get("extra", {}).get("history", [])
     return getattr(filt, "extra", {}).get("history", [])
+
+
+def validation_references(filters: dict, names=None) -> dict[str, list[float]]:
+    """Reference filters' RMSE on the validation set of the training runs (e.g. ``{"UKF": [...]}``).
+
+    Read from the ``summary.json`` beside the first of ``names`` whose run recorded them; the
+    learning curves are on that set, so these are the lines to draw beside them.
+    """
+    for name in names if names is not None else list(filters):
+        path = getattr(filters.get(name), "path", None)
+        summary = Path(path).with_name("summary.json") if path is not None else None
+        if summary is not None and summary.is_file():
+            references = json.loads(summary.read_text()).get("validation_references") or {}
+            if references:
+                return references
+    return {}
 
 
 def training_costs(jobs: dict[str, TrainingJob]) -> dict[str, dict]:

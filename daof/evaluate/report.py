@@ -222,6 +222,7 @@ def write_report(
     title: str,
     profile: str,
     curves: dict[str, list[dict]] | None = None,
+    curve_references: dict[str, list[float]] | None = None,
     window_rows: list[dict] | None = None,
     training: dict[str, dict] | None = None,
     notes: list[str] | None = None,
@@ -273,13 +274,15 @@ def write_report(
         figs = {"one run": figures.plot_one_run(study, out / "run0_states_errors.png")}
     figs["per-run RMSE"] = figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png", units=units)
     if curves:
-        refs = {k: study.results[k].rmse for k in ("UKF", ORACLE, study.reference) if k in study.results}
+        # reference lines on the validation set the curves are on (never the evaluation data's RMSEs)
+        refs = {f"{k} (validation set)": v for k, v in (curve_references or {}).items()}
         if scale is not None:  # validation RMSEs are logged in SI units
             k = scale.tolist()
             curves = {
                 name: [{**h, **{f"rmse_{n}": h[f"rmse_{n}"] * k[j] for j, n in enumerate(s.state_names)}} for h in hist]
                 for name, hist in curves.items()
             }
+            refs = {name: [v * k[j] for j, v in enumerate(values)] for name, values in refs.items()}
         figs["learning curves"] = figures.plot_learning_curves(
             curves, s.state_names, out / "learning_curves.png", refs, units=units if scale is not None else None
         )

@@ -26,6 +26,7 @@ from daof.evaluate.experiment import (
     select_scenarios,
     train,
     training_costs,
+    validation_references,
 )
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.metrics import pooled_rmse
@@ -152,6 +153,7 @@ def main(cfg: DictConfig) -> None:
         title="Optimality check: DAOF against the Kalman filter on the linear system",
         profile=cfg.profile,
         curves=learning_curves(filters, ("DAOF-v1", "DAOF-v2")),
+        curve_references=validation_references(filters, ("DAOF-v1", "DAOF-v2")),
         training=training_costs(jobs),
         notes=notes(cfg, p, study),
         requirements=[check],

@@ -26,6 +26,7 @@ from daof.evaluate.experiment import (
     select_scenarios,
     train,
     training_costs,
+    validation_references,
 )
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report
@@ -121,6 +122,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         title=f"Experiment II: veh14dof ({cfg.scenario}), model-free filtering",
         profile=cfg.profile,
         curves=learning_curves(filters),
+        curve_references=validation_references(filters),
         training=training_costs(jobs),
         notes=notes(cfg, p, filters),
         meta={"wall_time_s": round(wall, 1), "command": f"python recipes/veh14dof/experiment.py profile={cfg.profile}"},

@@ -32,6 +32,7 @@ from daof.evaluate.experiment import (
     select_scenarios,
     train,
     training_costs,
+    validation_references,
 )
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report, write_scenario_report
@@ -189,6 +190,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         title=f"Experiment I: veh2dof ({scenario})",
         profile=cfg.profile,
         curves=learning_curves(filters, ("SLF", "DAOF-v1", "DAOF-v2")),
+        curve_references=validation_references(filters, ("SLF", "DAOF-v1", "DAOF-v2")),
         window_rows=window_rows,
         training=training_costs(jobs),
         notes=scenario_notes(cfg, p, change),
