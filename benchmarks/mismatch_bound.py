@@ -7,10 +7,11 @@ In the `mismatch` scenario every run has its own road friction μ ~ U[0.7, 1.0] 
 B ~ U[8, 12]; the model-based filters keep the nominal μ = 0.9, B = 10. A bootstrap PF that is
 given each run's true μ and B (and every other part of the true model) is near-optimal for that
 run, so no filter that must infer μ and B from the data can beat it on average: its RMSE is the
-floor. A PF on the state (β, r, μ, B), μ and B static and drawn from the scenario's prior, is the
-Bayes filter of the scenario itself: told nothing about the run, like a learned filter, it infers
-μ and B as it goes. The gap between the nominal-model PF-oracle and these two is what a filter
-can win by not trusting the nominal model.
+floor. A PF on the state (β, r, μ, B), μ and B static and drawn from the scenario's prior
+(``daof.filters.JointParameterPF``, the study's PF-joint), is the Bayes filter of the scenario
+itself: told nothing about the run, like a learned filter, it infers μ and B as it goes. The gap
+between the nominal-model PF-oracle and these two is what a filter can win by not trusting the
+nominal model.
 
 It prints both (each at two particle counts, to show convergence) beside the study's filters
 (read from the study's cache of estimates, ``--study``), their RMSE per band of true μ, and their
@@ -27,7 +28,7 @@ from pathlib import Path
 import torch
 
 from daof.evaluate.metrics import per_run_rmse, pooled_rmse
-from daof.filters import ParticleFilter
+from daof.filters import JointParameterPF, ParticleFilter
 from envs import make_system
 from envs.vehicle2dof import Vehicle2DOF
 
@@ -42,59 +43,15 @@ class KnownParameterVeh2DOF(Vehicle2DOF):
         super().__init__(scenario="mismatch")
         self.mu, self.B = mu, B
 
-    def _per_run(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _per_run(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         shape = (-1,) + (1,) * (x.dim() - 2)  # [runs] -> [runs, 1, ...] against x's middle axes
-        return self.mu.view(shape).to(x), self.B.view(shape).to(x)
+        return {"mu": self.mu.view(shape).to(x), "B": self.B.view(shape).to(x)}
 
     def f(self, x, u):
-        mu, B = self._per_run(x)
-        return x + self.dt * self.derivative(x, u, mu, B)
+        return self.f_with(x, u, self._per_run(x))
 
     def g(self, x, u):
-        mu, B = self._per_run(x)
-        return torch.stack([self.lateral_acceleration(x, u, mu, B), x[..., 1]], -1)
-
-
-class _Appended:
-    """A noise of the base state with extra coordinates drawn by ``extra(shape, generator)``."""
-
-    def __init__(self, base, extra):
-        self.base, self.extra = base, extra
-
-    def sample(self, shape=(), generator=None):
-        return torch.cat([self.base.sample(shape, generator), self.extra(shape, generator)], -1)
-
-
-class JointParameterVeh2DOF(Vehicle2DOF):
-    """veh2dof with μ and B appended to the state, static, drawn from the scenario's own prior.
-
-    A PF on this state is the Bayes filter of the `mismatch` scenario itself: like a learned
-    filter it is not told μ and B and must infer them from the data, but it knows their prior.
-    """
-
-    def __init__(self):
-        super().__init__(scenario="mismatch")
-        p = self.p
-        lows = torch.tensor([p.mismatch_mu[0], p.mismatch_B[0]])
-        highs = torch.tensor([p.mismatch_mu[1], p.mismatch_B[1]])
-
-        def uniform(shape, generator):
-            return lows + (highs - lows) * torch.rand(*shape, 2, generator=generator)
-
-        self.prior = _Appended(self.prior, uniform)
-        self.process_noise = _Appended(self.process_noise, lambda shape, _: torch.zeros(*shape, 2))
-
-    @property
-    def state_dim(self) -> int:
-        return 4
-
-    def f(self, x, u):
-        base, mu, B = x[..., :2], x[..., 2], x[..., 3]
-        return torch.cat([base + self.dt * self.derivative(base, u, mu, B), x[..., 2:]], -1)
-
-    def g(self, x, u):
-        base, mu, B = x[..., :2], x[..., 2], x[..., 3]
-        return torch.stack([self.lateral_acceleration(base, u, mu, B), base[..., 1]], -1)
+        return self.g_with(x, u, self._per_run(x))
 
 
 def fmt(values) -> str:
@@ -129,9 +86,9 @@ def main() -> None:
         estimates[f"PF, true μ and B ({n:,})"] = pf.run(data).float()
         print(f"known-parameter PF with {n:,} particles: {time.perf_counter() - start:.0f} s", flush=True)
     for n in args.joint_particles:
-        pf = ParticleFilter(JointParameterVeh2DOF(), num_particles=n, max_elements=args.runs * n)
+        pf = JointParameterPF(system, num_particles=n, seed=0, max_elements=args.runs * n)  # one chunk
         start = time.perf_counter()
-        estimates[f"PF, μ and B inferred ({n:,})"] = pf.run(data)[..., :2].float()
+        estimates[f"PF, μ and B inferred ({n:,})"] = pf.run(data).float()
         print(f"joint-parameter PF with {n:,} particles: {time.perf_counter() - start:.0f} s", flush=True)
     if args.study is not None:
         for path in sorted(args.study.glob("*.pt")):

@@ -72,6 +72,23 @@ class StochasticSystem:
         """Noise-free nominal measurement y_t = g(x_t, u_t), batched over leading dims."""
         raise NotImplementedError(f"{self.name} offers no measurement model to filters")
 
+    # ----------------------------------------------------------------- uncertain model parameters
+    def uncertain_parameters(self) -> dict[str, tuple[float, float]]:
+        """Model parameters the scenario draws per run, as ``name -> (low, high)`` of a uniform prior.
+
+        Empty when the nominal model is the true one. A filter may infer these (``JointParameterPF``)
+        through ``f_with`` and ``g_with``.
+        """
+        return {}
+
+    def f_with(self, x: torch.Tensor, u: torch.Tensor, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``f`` with the ``uncertain_parameters`` set to ``params`` (each broadcastable to ``x[..., 0]``)."""
+        raise NotImplementedError(f"{self.name} has no uncertain model parameters")
+
+    def g_with(self, x: torch.Tensor, u: torch.Tensor, params: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``g`` with the ``uncertain_parameters`` set to ``params`` (each broadcastable to ``x[..., 0]``)."""
+        raise NotImplementedError(f"{self.name} has no uncertain model parameters")
+
     # ----------------------------------------------------------------- episode simulation
     def sample_params(self, runs: int, generator: torch.Generator, device) -> TensorDict:
         """Per-run episode parameters (control schedule, true model parameters)."""

@@ -162,6 +162,19 @@ class Vehicle2DOF(StochasticSystem):
         Fy = torch.sin(self.p.C * torch.atan(torch.lerp(Ba, torch.atan(Ba), self.p.E))) * muFz
         return x @ J + (Fy * torch.cos(delta * e1)) @ G
 
+    # ----------------------------------------------------------------- uncertain parameters
+    def uncertain_parameters(self) -> dict[str, tuple[float, float]]:
+        """``mismatch`` draws the road friction μ and the tyre's B per run; the other scenarios nothing."""
+        p = self.p
+        return {"mu": p.mismatch_mu, "B": p.mismatch_B} if self.scenario == "mismatch" else {}
+
+    def f_with(self, x, u, params):
+        """Euler step of ``derivative`` with μ and B from ``params`` (the true model of a mismatch run)."""
+        return x + self.dt * self.derivative(x, u, params["mu"], params["B"])
+
+    def g_with(self, x, u, params):
+        return torch.stack([self.lateral_acceleration(x, u, params["mu"], params["B"]), x[..., 1]], -1)
+
     # ----------------------------------------------------------------- episodes
     def sample_params(self, runs, generator, device):
         p = self.p
@@ -185,10 +198,7 @@ class Vehicle2DOF(StochasticSystem):
         return (params["amplitude"] * torch.sin(angle)).unsqueeze(-1)
 
     def transition(self, x, u, params, generator):
-        x_dot = self.derivative(x, u, params["mu"], params["B"])
-        return x + self.dt * x_dot + self.process_noise.sample(x.shape[:-1], generator)
+        return self.f_with(x, u, params) + self.process_noise.sample(x.shape[:-1], generator)
 
     def measure(self, x, u, params, generator):
-        a_y = self.lateral_acceleration(x, u, params["mu"], params["B"])
-        clean = torch.stack([a_y, x[..., 1]], -1)
-        return clean + self.measurement_noise.sample(x.shape[:-1], generator)
+        return self.g_with(x, u, params) + self.measurement_noise.sample(x.shape[:-1], generator)

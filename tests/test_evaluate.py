@@ -139,7 +139,7 @@ def test_classical_filters_are_cached_under_their_code_and_settings():
 # ----------------------------------------------------------------------------- scenarios side by side
 def _small_study(system):
     from daof.evaluate import run_study
-    from daof.filters import EKF, UKF, ParticleFilter
+    from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
 
     filters = {
         "EKF": EKF(system),
@@ -147,6 +147,8 @@ def _small_study(system):
         "PF": ParticleFilter(system, 100, seed=1),
         "PF-oracle": ParticleFilter(system, 300, seed=2),
     }
+    if system.uncertain_parameters():  # as the recipe: only where there are parameters to infer
+        filters["PF-joint"] = JointParameterPF(system, 300, seed=4)
     return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None)
 
 
@@ -184,7 +186,8 @@ def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
     assert "ratio to PF-oracle (nominal model) (beta / yaw_rate)" in text  # mismatch: only a nominal-model PF
     assert "the PF-oracle is the near-optimal reference only on `nominal`" in text
     lines = (tmp_path / "report" / "results.csv").read_text().splitlines()
-    assert lines[0].startswith("scenario,filter,rmse_beta,rmse_yaw_rate,ratio_beta") and len(lines) == 1 + 8
+    assert lines[0].startswith("scenario,filter,rmse_beta,rmse_yaw_rate,ratio_beta") and len(lines) == 1 + 9
+    assert "| PF-joint | – | – | " in text  # run on mismatch only: a dash where it was not run
     assert (tmp_path / "report" / "rmse_by_scenario.png").is_file()
 
 
@@ -285,6 +288,7 @@ def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
     for sc in ("nominal", "mismatch"):
         results = json.loads((tmp_path / sc / "report" / "results.json").read_text())
         assert results["scenario"] == sc and set(results["filters"]) >= {"EKF", "PF-oracle", "SLF", "DAOF-v1"}
+        assert ("PF-joint" in results["filters"]) == (sc == "mismatch")
     combined = json.loads((tmp_path / "report" / "results.json").read_text())
     assert combined["scenarios"] == ["nominal", "mismatch"] and set(combined["winners"]) == {"nominal", "mismatch"}
     assert f"combined report: {tmp_path / 'report' / 'report.md'}" in done.stdout

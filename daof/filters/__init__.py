@@ -1,12 +1,13 @@
 """Filters: every one offers ``run(data) -> estimates [runs, steps, state_dim]`` (see ``base``).
 
 Classical baselines: ``KalmanFilter`` and ``StationaryKalmanFilter`` (linear system), ``EKF`` and
-``UKF`` (filterpy) and the batched bootstrap ``ParticleFilter``.
+``UKF`` (filterpy), the batched bootstrap ``ParticleFilter`` and ``JointParameterPF``, which also
+infers a scenario's uncertain model parameters.
 """
 
 from daof.filters.base import Filter
 from daof.filters.kalman import EKF, UKF, CovarianceRepair, KalmanFilter
-from daof.filters.particle import ParticleFilter, systematic_resample
+from daof.filters.particle import JointParameterPF, ParticleFilter, systematic_resample
 from daof.filters.stationary_kalman import StationaryKalmanFilter
 
 __all__ = [
@@ -17,5 +18,6 @@ __all__ = [
     "UKF",
     "CovarianceRepair",
     "ParticleFilter",
+    "JointParameterPF",
     "systematic_resample",
 ]

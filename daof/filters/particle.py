@@ -16,7 +16,7 @@ import torch
 from daof.filters.base import Filter
 from envs.system import StochasticSystem
 
-__all__ = ["systematic_resample", "ParticleFilter"]
+__all__ = ["systematic_resample", "ParticleFilter", "JointParameterPF"]
 
 
 def systematic_resample(weights: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -66,6 +66,8 @@ class ParticleFilter(Filter):
         self.resample = resample
         self.ess_fraction = ess_fraction
         self.max_elements = max_elements
+        #: what the particles follow: prior, process noise, f, g, measurement noise, state_dim
+        self.model = system
 
     @torch.no_grad()
     def _run(self, y, u_prev, u):
@@ -80,7 +82,7 @@ class ParticleFilter(Filter):
         return torch.cat(out)
 
     def _filter(self, y, u_prev, u, generator):
-        s, n = self.system, self.num_particles
+        s, n = self.model, self.num_particles
         runs, steps = y.shape[:2]
         y, u_prev, u = (v.to(torch.float32) for v in (y, u_prev, u))
         x = s.prior.sample((runs, n), generator)  # particles of x_0 ~ prior, [runs, N, state_dim]
@@ -122,3 +124,74 @@ class ParticleFilter(Filter):
         self.stats["resamples"] += resamples
         self.stats["diverged"] += int(diverged.sum())
         return out
+
+
+class _Appended:
+    """A noise of the base state with extra coordinates drawn by ``extra(shape, generator, device)``."""
+
+    def __init__(self, base, extra):
+        self.base, self.extra = base, extra
+
+    def sample(self, shape=(), generator=None):
+        x = self.base.sample(shape, generator)
+        return torch.cat([x, self.extra(shape, generator, x.device)], -1)
+
+
+class _JointParameterModel:
+    """A system's state with its uncertain parameters θ appended: θ static, from its uniform prior."""
+
+    def __init__(self, system: StochasticSystem):
+        ranges = system.uncertain_parameters()
+        self.system, self.names = system, list(ranges)
+        self.low = torch.tensor([lo for lo, _ in ranges.values()])
+        self.high = torch.tensor([hi for _, hi in ranges.values()])
+        self.state_dim = system.state_dim + len(ranges)
+        self.measurement_noise = system.measurement_noise
+        self.prior = _Appended(system.prior, self._sample_parameters)
+        self.process_noise = _Appended(
+            system.process_noise, lambda shape, _, device: torch.zeros(*shape, len(ranges), device=device)
+        )
+
+    def _sample_parameters(self, shape, generator, device):
+        low, high = self.low.to(device), self.high.to(device)
+        return low + (high - low) * torch.rand(*shape, len(self.names), generator=generator, device=device)
+
+    def _split(self, x):
+        d = self.system.state_dim
+        return x[..., :d], {name: x[..., d + i] for i, name in enumerate(self.names)}
+
+    def f(self, x, u):
+        base, params = self._split(x)
+        return torch.cat([self.system.f_with(base, u, params), x[..., self.system.state_dim :]], -1)
+
+    def g(self, x, u):
+        base, params = self._split(x)
+        return self.system.g_with(base, u, params)
+
+
+class JointParameterPF(ParticleFilter):
+    """Bootstrap PF that infers the scenario's uncertain model parameters along with the state.
+
+    Each particle carries (x, θ), θ = ``system.uncertain_parameters()`` (e.g. μ and B of veh2dof
+    ``mismatch``) drawn once from their uniform prior and then static. The filter is told nothing
+    about the run, like a learned filter, but knows the scenario's prior: with enough particles it
+    is the scenario's Bayes filter. ``run`` returns the state estimates; ``parameter_estimates``
+    holds the posterior mean of θ at every step of the last run ``[runs, steps, len(θ)]``.
+    """
+
+    name = "PF-joint"
+
+    def __init__(self, system: StochasticSystem, num_particles: int = 20000, seed: int = 0, **kwargs):
+        if not system.uncertain_parameters():
+            raise ValueError(
+                f"{system.name} ({system.scenario}) has no uncertain model parameters to infer; use ParticleFilter"
+            )
+        super().__init__(system, num_particles, seed, **kwargs)
+        self.model = _JointParameterModel(system)
+        self.parameter_estimates: torch.Tensor | None = None
+
+    def _run(self, y, u_prev, u):
+        joint = super()._run(y, u_prev, u)
+        d = self.system.state_dim
+        self.parameter_estimates = joint[..., d:]
+        return joint[..., :d]
