@@ -147,9 +147,11 @@ def _small_study(system):
         "PF": ParticleFilter(system, 100, seed=1),
         "PF-oracle": ParticleFilter(system, 300, seed=2),
     }
-    if system.uncertain_parameters():  # as the recipe: only where there are parameters to infer
+    reference = "PF-oracle"
+    if system.uncertain_parameters():  # as the recipe: only where there are parameters to infer, and the reference
         filters["PF-joint"] = JointParameterPF(system, 300, seed=4)
-    return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None)
+        reference = "PF-joint"
+    return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None, reference=reference)
 
 
 def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
@@ -158,14 +160,14 @@ def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
     from daof.evaluate.report import write_scenario_report
     from envs import make_system
 
-    studies = {sc: _small_study(make_system("veh2dof", sc)) for sc in ("nominal", "mismatch")}
+    studies = {sc: _small_study(make_system("veh2dof", sc)) for sc in ("nominal", "mismatch", "outliers")}
     reports = {sc: tmp_path / sc / "report" / "report.md" for sc in studies}
     path = write_scenario_report(studies, tmp_path / "report", title="side by side", profile="tiny", reports=reports)
     text = path.read_text()
     head = "| filter | nominal: beta [rad] | nominal: yaw_rate [rad/s] | mismatch: beta [rad] | mismatch: yaw_rate"
     assert head in text
     results = json.loads((tmp_path / "report" / "results.json").read_text())
-    assert results["scenarios"] == ["nominal", "mismatch"]
+    assert results["scenarios"] == ["nominal", "mismatch", "outliers"]
     for sc, study in studies.items():
         names = list(study.results)
         rmse = torch.tensor([study.results[n].rmse for n in names])
@@ -173,20 +175,24 @@ def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
         assert results["winners"][sc]["per_state"] == dict(zip(["beta", "yaw_rate"], best))
         score = (rmse / rmse.min(0).values).mean(1)
         assert results["winners"][sc]["overall"] == names[int(score.argmin())]
-        practical = [i for i, n in enumerate(names) if n != "PF-oracle"]
+        practical = [i for i, n in enumerate(names) if n not in {"PF-oracle", study.reference}]
         assert results["winners"][sc]["overall_without_oracle"] == names[min(practical, key=lambda i: score[i])]
         assert results["studies"][sc]["filters"]["UKF"]["rmse"] == study.results["UKF"].rmse
         # the winner's cell is bold in the summary table
-        j = 0 if sc == "nominal" else 2
+        j = 2 * list(studies).index(sc)
         row = next(line for line in text.splitlines() if line.startswith(f"| {best[0]} | "))
         assert row.split(" | ")[1 + j] == f"**{study.results[best[0]].rmse[0]:.4g}**"
     assert f"| mismatch | {results['winners']['mismatch']['per_state']['beta']} |" in text
     assert "## Scenario `nominal` ([full report](../nominal/report/report.md))" in text
     assert "ratio to PF-oracle (beta / yaw_rate)" in text  # nominal: the near-optimal reference
-    assert "ratio to PF-oracle (nominal model) (beta / yaw_rate)" in text  # mismatch: only a nominal-model PF
+    assert "ratio to PF-joint (beta / yaw_rate)" in text  # mismatch: the scenario's Bayes filter
+    assert "Ratios are per state, relative to PF-joint" in text
+    assert "ratio to PF-oracle (nominal model) (beta / yaw_rate)" in text  # outliers: only a nominal-model PF
     assert "the PF-oracle is the near-optimal reference only on `nominal`" in text
+    assert results["studies"]["mismatch"]["reference"] == "PF-joint"
+    assert results["winners"]["mismatch"]["overall_without_oracle"] not in {"PF-oracle", "PF-joint"}
     lines = (tmp_path / "report" / "results.csv").read_text().splitlines()
-    assert lines[0].startswith("scenario,filter,rmse_beta,rmse_yaw_rate,ratio_beta") and len(lines) == 1 + 9
+    assert lines[0].startswith("scenario,filter,rmse_beta,rmse_yaw_rate,ratio_beta") and len(lines) == 1 + 13
     assert "| PF-joint | – | – | " in text  # run on mismatch only: a dash where it was not run
     assert (tmp_path / "report" / "rmse_by_scenario.png").is_file()
 
@@ -289,6 +295,7 @@ def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
         results = json.loads((tmp_path / sc / "report" / "results.json").read_text())
         assert results["scenario"] == sc and set(results["filters"]) >= {"EKF", "PF-oracle", "SLF", "DAOF-v1"}
         assert ("PF-joint" in results["filters"]) == (sc == "mismatch")
+        assert results["reference"] == ("PF-joint" if sc == "mismatch" else "PF-oracle")
     combined = json.loads((tmp_path / "report" / "results.json").read_text())
     assert combined["scenarios"] == ["nominal", "mismatch"] and set(combined["winners"]) == {"nominal", "mismatch"}
     assert f"combined report: {tmp_path / 'report' / 'report.md'}" in done.stdout
