@@ -1,6 +1,10 @@
 """RMSE and cost per estimate of the classical baselines on veh2dof (specs/benchmark.md).
 
     .venv/bin/python benchmarks/bench_classical.py --runs 20 --steps 500 --threads 1
+    .venv/bin/python benchmarks/bench_classical.py --scenario mismatch --oracle-particles 20000
+
+On a scenario with uncertain model parameters (``mismatch``) PF-joint, the PF that also infers them
+(``JointParameterPF``, as many particles as PF-oracle), is timed too.
 
 RMSE: pooled over runs × steps of one study. Cost: mean wall time of one filter update for one
 trajectory (batch 1) streamed step by step through ``run``, after a warm-up, median over
@@ -19,7 +23,7 @@ import numpy as np
 import torch
 
 import envs
-from daof.filters import EKF, UKF, ParticleFilter
+from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
 from daof.filters.kalman import make_model
 
 
@@ -55,6 +59,7 @@ def main():
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--steps", type=int, default=500)
     parser.add_argument("--seed", type=int, default=20261122)
+    parser.add_argument("--scenario", default="nominal", help="veh2dof scenario (nominal, mismatch, outliers)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--oracle-particles", type=int, default=10_000)
@@ -62,7 +67,7 @@ def main():
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    system = envs.make_system("veh2dof")
+    system = envs.make_system("veh2dof", args.scenario)
     data = system.simulate(args.runs, args.steps, seed=args.seed)
     truth = data["state"]
     filters = {
@@ -71,8 +76,10 @@ def main():
         "PF": ParticleFilter(system, 1000, seed=args.seed + 1),
         "PF-oracle": ParticleFilter(system, args.oracle_particles, seed=args.seed + 1),
     }
+    if system.uncertain_parameters():
+        filters["PF-joint"] = JointParameterPF(system, args.oracle_particles, seed=args.seed + 1)
     print(
-        f"veh2dof nominal, {args.runs} runs × {args.steps} steps, seed {args.seed}, "
+        f"veh2dof {args.scenario}, {args.runs} runs × {args.steps} steps, seed {args.seed}, "
         f"torch {torch.__version__}, threads {torch.get_num_threads()}, {platform.processor() or platform.machine()}"
     )
     raw = (data["measurement"][..., 1] - truth[..., 1]).pow(2).mean().sqrt()
