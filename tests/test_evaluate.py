@@ -139,18 +139,9 @@ def test_classical_filters_are_cached_under_their_code_and_settings():
 # ----------------------------------------------------------------------------- scenarios side by side
 def _small_study(system):
     from daof.evaluate import run_study
-    from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
+    from daof.evaluate.experiment import classical_filters
 
-    filters = {
-        "EKF": EKF(system),
-        "UKF": UKF(system),
-        "PF": ParticleFilter(system, 100, seed=1),
-        "PF-oracle": ParticleFilter(system, 300, seed=2),
-    }
-    reference = "PF-oracle"
-    if system.uncertain_parameters():  # as the recipe: only where there are parameters to infer, and the reference
-        filters["PF-joint"] = JointParameterPF(system, 300, seed=4)
-        reference = "PF-joint"
+    filters, reference = classical_filters(system, 100, 300)  # the recipe's filters, with fewer particles
     return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None, reference=reference)
 
 

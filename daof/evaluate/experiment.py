@@ -20,12 +20,14 @@ from omegaconf import DictConfig, ListConfig
 
 from daof.evaluate.jobs import TrainingJob, run_jobs
 from daof.evaluate.study import ORACLE, Study, run_study
+from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
 from daof.filters.base import Filter
 from daof.filters.learned import load_filter
 from envs import make_system
 
 __all__ = [
     "checkpoint_fingerprint",
+    "classical_filters",
     "learning_curves",
     "load_trained",
     "run_trained_study",
@@ -91,6 +93,25 @@ def load_trained(jobs: dict[str, TrainingJob], system, expect: dict | Callable[[
         except (FileNotFoundError, ValueError) as error:
             raise SystemExit(f"{name}: {error} (train it again: delete {job.output_dir})") from None
     return filters
+
+
+def classical_filters(system, particles: int, oracle_particles: int) -> tuple[dict, str]:
+    """The model-based filters of a veh2dof-type study (name -> filter) and the name of its reference.
+
+    EKF, UKF, PF and PF-oracle on the system's nominal model; on a scenario with uncertain model
+    parameters (``mismatch``) also PF-joint, which infers them, and it is then the reference the
+    ratios and the diverged-run rule are relative to (the scenario's Bayes filter); else PF-oracle.
+    """
+    filters = {
+        "EKF": EKF(system),
+        "UKF": UKF(system),
+        "PF": ParticleFilter(system, int(particles), seed=1),
+        ORACLE: ParticleFilter(system, int(oracle_particles), seed=2),
+    }
+    if not system.uncertain_parameters():
+        return filters, ORACLE
+    filters[JointParameterPF.name] = JointParameterPF(system, int(oracle_particles), seed=4)
+    return filters, JointParameterPF.name
 
 
 def run_trained_study(

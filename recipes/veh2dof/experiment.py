@@ -26,6 +26,7 @@ from omegaconf import DictConfig, open_dict
 
 from daof.evaluate import Dropout, run_study
 from daof.evaluate.experiment import (
+    classical_filters,
     learning_curves,
     run_trained_study,
     select_profile,
@@ -36,8 +37,7 @@ from daof.evaluate.experiment import (
 )
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report, write_scenario_report
-from daof.evaluate.study import ORACLE
-from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
+from daof.filters import ParticleFilter
 from envs import make_system
 
 HERE = Path(__file__).resolve().parent
@@ -147,16 +147,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
     root = Path(cfg.output_root)
     print(f"2/3 Monte Carlo study ({scenario})")
     system = make_system("veh2dof", scenario)
-    classical = {
-        "EKF": EKF(system),
-        "UKF": UKF(system),
-        "PF": ParticleFilter(system, int(p.particles), seed=1),
-        "PF-oracle": ParticleFilter(system, int(p.oracle_particles), seed=2),
-    }
-    reference = ORACLE
-    if system.uncertain_parameters():  # mismatch: the scenario's Bayes filter, inferring μ and B, is the reference
-        classical[JointParameterPF.name] = JointParameterPF(system, int(p.oracle_particles), seed=4)
-        reference = JointParameterPF.name
+    classical, reference = classical_filters(system, p.particles, p.oracle_particles)
     studied = dict(
         classical=classical,
         runs=int(p.runs),
