@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
+from hydra import compose, initialize_config_dir
 
 from daof.train.dsac import DSACTTrainer
 
@@ -69,10 +69,9 @@ def main() -> None:
     print("| γ | targets [ms] | critic loss + backward [ms] | actor loss + backward [ms] | update [ms] |")
     print("|---|---|---|---|---|")
     for gamma in [float(g) for g in args.gammas.split(",")]:
-        cfg = OmegaConf.load(ROOT / args.config_path / "config.yaml")
-        cfg.pop("hydra", None)
-        cfg.merge_with_dotlist([*args.override, f"loss.gamma={gamma}", "logger.backend="])
-        cfg.output_dir = tempfile.mkdtemp(prefix="bench_update_")
+        with initialize_config_dir(str(ROOT / args.config_path), version_base="1.3"):
+            overrides = [*args.override, f"loss.gamma={gamma}", "logger.backend=", f"output_dir={tempfile.mkdtemp()}"]
+            cfg = compose(config_name="config", overrides=overrides)
         targets, critic, actor, update = time_update(DSACTTrainer(cfg), args.repeats)
         print(f"| {gamma:g} | {targets:.2f} | {critic:.1f} | {actor:.1f} | {update:.1f} |")
 

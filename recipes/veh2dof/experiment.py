@@ -55,18 +55,18 @@ def training_jobs(cfg: DictConfig, p: DictConfig, root: Path, label: str = "") -
     ``label`` is appended to the job names in the progress log (the scenario, when there are several).
     """
     common = [f"scenario={cfg.scenario}", f"seed={cfg.training_seed}"]
-    daof = [*common, *p.daof_overrides]
     specs = {
         "SLF": ("train_slf.py", f"slf-N{WINDOW}", int(p.slf_frames), [*common, f"window={WINDOW}", *p.slf_overrides]),
         "DAOF-v2": (
             "train_daof.py",
             f"daof-v2-N{WINDOW}",
-            int(p.daof_frames),
-            [*daof, "version=v2", f"window={WINDOW}", *cfg.v2_overrides],
+            int(p.v2_frames),
+            [*common, "version=v2", f"window={WINDOW}", *cfg.v2_overrides, *p.daof_overrides],
         ),
     }
     for n in sorted(p.windows, reverse=True):
-        specs[v1_name(n)] = ("train_daof.py", f"daof-v1-N{n}", int(p.daof_frames), [*daof, "version=v1", f"window={n}"])
+        v1 = [*common, "version=v1", f"window={n}", *p.daof_overrides]
+        specs[v1_name(n)] = ("train_daof.py", f"daof-v1-N{n}", int(p.v1_frames), v1)
     return {
         name: TrainingJob(name + label, HERE / script, root / out, frames, overrides)
         for name, (script, out, frames, overrides) in specs.items()
