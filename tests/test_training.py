@@ -158,6 +158,15 @@ def test_slf_training_gaps_are_drawn_independently_of_the_simulation_noise(tmp_p
     assert not torch.equal(flags, mask(seed))
 
 
+def test_version_group_gives_each_version_its_settings(tmp_path):
+    """config.yaml's defaults are DAOF-v1's residual design; version=v2 selects DAOF-v2's own."""
+    v1, v2 = (tiny_cfg("config.yaml", tmp_path, version=v) for v in ("v1", "v2"))
+    settings = ("network.reference_gain", "reward.baseline", "network.critic_form", "collector.episode_steps")
+    assert [OmegaConf.select(v1, key) for key in settings] == [True, "zero_action", "quadratic", 500]
+    assert [OmegaConf.select(v2, key) for key in settings] == [False, "none", "mlp", 100]
+    assert (v1.version, v2.version) == ("v1", "v2") and v2.loss.alpha_init == pytest.approx(math.e)
+
+
 def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
     """auto: the entropy of Gaussian noise of k error scales per state, in the actor's action units."""
     for version in ("v1", "v2"):
