@@ -79,6 +79,10 @@ class DSACTLoss(LossModule):
             action written under ``tensor_keys.action`` (e.g. ``"correction"`` for DAOF-v1).
         qvalue_network: critic reading the observation keys and ``tensor_keys.action``, writing
             ``state_action_value`` with last dim 2K: K pairs (μ_k, raw_k), σ_k = softplus(raw_k).
+            One module: TorchRL expands it to ``num_qvalue_nets`` copies and re-samples each
+            parameter tensor of the copies uniformly in [min, max] of the module's, which
+            undoes any structured init (zeroed rows or columns). A list of ``num_qvalue_nets``
+            modules of one architecture: each critic keeps its own init.
 
     Keyword Args:
         num_qvalue_nets: critics in the ensemble (2 in DSAC-T).
@@ -128,7 +132,7 @@ class DSACTLoss(LossModule):
     def __init__(
         self,
         actor_network: ProbabilisticTensorDictSequential,
-        qvalue_network: TensorDictModule,
+        qvalue_network: TensorDictModule | list[TensorDictModule],
         *,
         num_qvalue_nets: int = 2,
         action_spec: TensorSpec | None = None,
@@ -150,6 +154,8 @@ class DSACTLoss(LossModule):
         self.delay_qvalue = delay_qvalue
         self.num_qvalue_nets = num_qvalue_nets
         self.convert_to_functional(actor_network, "actor_network", create_target_params=delay_actor)
+        if isinstance(qvalue_network, (list, tuple)) and len(qvalue_network) != num_qvalue_nets:
+            raise ValueError(f"got {len(qvalue_network)} critics for num_qvalue_nets={num_qvalue_nets}")
         self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=delay_qvalue)
         self.xi, self.epsilon, self.tau_b, self.sample_clip = xi, epsilon, tau_b, sample_clip
         if mean_weighting not in ("variance", "uniform"):

@@ -313,3 +313,21 @@ def test_gamma_zero_targets_are_the_reward_without_bootstrapping(terms):
     slow_q, slow_z = loss.compute_targets(batch)
     torch.testing.assert_close(slow_q, y_q)
     torch.testing.assert_close(slow_z, y_z)
+
+
+def test_a_list_of_critics_keeps_each_critics_own_parameters():
+    """DSACTLoss(actor, [critic_1, critic_2]): the ensemble is those two modules' parameters, targets
+    included; one module is expanded and its copies re-sampled (TorchRL), which loses a zeroed row."""
+    critics = [make_mlp_critic() for _ in range(2)]
+    for critic in critics:
+        with torch.no_grad():
+            critic.module[-1].weight[0].zero_()
+    loss = make_loss(critics, num_qvalue_nets=2)
+    for params in (loss.qvalue_network_params, loss.target_qvalue_network_params):
+        for i, critic in enumerate(critics):
+            for key, value in TensorDict.from_module(critic).flatten_keys().items():
+                torch.testing.assert_close(params.flatten_keys()[key][i], value)
+    expanded = make_loss(critics[0], num_qvalue_nets=2)
+    assert expanded.qvalue_network_params["module", "2", "weight"][:, 0].abs().amax() > 0
+    with pytest.raises(ValueError, match="2 critics"):
+        make_loss(critics, num_qvalue_nets=3)

@@ -337,9 +337,12 @@ def test_a_residual_run_starts_at_the_reference_filter_and_its_critic_prefers_no
         loc, scale = f.policy(*[trainer.env.reset()[k] for k in f.policy_in_keys])
         torch.testing.assert_close(loc, torch.zeros_like(loc))
         torch.testing.assert_close(scale, trainer.exploration_std().expand_as(scale))
-        last = trainer.critic.module.mlp[-1]
+        # in the loss's two critics and their targets, not only in the module they were built from
         n = trainer.system.state_dim
-        assert (last.weight[2 : 2 + n] == 0).all() and (last.bias[2 : 2 + n] == 0).all()
+        for params in (trainer.loss.qvalue_network_params, trainer.loss.target_qvalue_network_params):
+            last = params["module", "mlp", "6"]
+            assert (last["weight"][:, 2 : 2 + n] == 0).all() and (last["bias"][:, 2 : 2 + n] == 0).all()
+            assert not torch.equal(last["weight"][0], last["weight"][1])  # two critics, not one twice
     fixed = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "fixed", **RESIDUAL, **{"loss.target_entropy": -3.0}))
     with torch.no_grad():  # a fixed entropy target: the residual starts at 0 too, with that entropy
         loc, scale = fixed.filter.policy(*[fixed.env.reset()[k] for k in fixed.filter.policy_in_keys])
@@ -381,3 +384,37 @@ def test_the_zero_action_baseline_takes_the_reward_of_the_zero_update_off(tmp_pa
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "u", **{"reward.baseline": "average"}))
     with pytest.raises(ValueError, match="acts by updates"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "v2", version="v2", **{"reward.baseline": "zero_action"}))
+
+
+def test_critic_init_resampled_is_torchrls_copy_which_loses_the_structured_init(tmp_path):
+    """network.critic_init=resampled (the runs before session 15): TorchRL expands one critic and
+    re-samples its copies in [min, max], so the quadratic critic's m(h) rows are not 0."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **RESIDUAL, **{"network.critic_init": "resampled"}))
+    n = trainer.system.state_dim
+    assert trainer.loss.qvalue_network_params["module", "mlp", "6", "weight"][:, 2 : 2 + n].abs().amax() > 0
+    with pytest.raises(ValueError, match="critic_init"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"network.critic_init": "copied"}))
+
+
+def test_window_init_newest_starts_every_network_on_the_newest_frame(tmp_path):
+    """network.window_init=newest: the first layers of the actor and both critics have zero weights on
+    the N − 1 older frames, so changing them does not change any output at the start."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **RESIDUAL, **{"network.window_init": "newest"}))
+    f = trainer.filter
+    older = (f.config.window - 1) * f.frame_dim
+    critics_first = trainer.loss.qvalue_network_params["module", "mlp", "0", "weight"]
+    for weight in (f.policy.mlp[0].weight.unsqueeze(0), critics_first):
+        assert (weight[..., :older] == 0).all() and (weight[..., older:] != 0).all()
+    td = trainer.env.reset()
+    window, step = td[f.input_key], td["step"]
+    moved = window.clone()
+    moved[..., :older] += torch.randn_like(window[..., :older])
+    action = torch.zeros(*td.batch_size, trainer.system.state_dim)
+    critic = trainer.critic.module
+    with torch.no_grad():
+        first = f.policy.mlp[0]
+        torch.testing.assert_close(first(f.policy.features(window, step)), first(f.policy.features(moved, step)))
+        torch.testing.assert_close(critic(window, action, step), critic(moved, action, step))
+        assert not torch.equal(critic(window, action, step), critic(window, action + 0.5, step))
+    with pytest.raises(ValueError, match="window_init"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"network.window_init": "oldest"}))

@@ -29,7 +29,7 @@ from torchrl.objectives import SoftUpdate
 from daof.filters.learned import startup_feature
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
-from daof.train.networks import make_critic
+from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
 from daof.train.sampling import WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
@@ -60,6 +60,7 @@ class DSACTTrainer(FilterTrainer):
         self._make_schedules()
         if self.filter.config.reference_gain:
             self._start_at_the_reference()
+        self._init_window(self.filter.policy.mlp)
         self._make_loss()
         self._make_data()
 
@@ -90,10 +91,21 @@ class DSACTTrainer(FilterTrainer):
         # a critic per state: the reward is a sum of per-state terms, each learned on its own
         terms = self.system.state_dim if per_state else 1
         form = str(cfg.network.get("critic_form", "mlp"))
-        self.critic = make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form)
+        # "own": each of the two critics keeps its own init (the quadratic critic's m(h) = 0, the
+        # window init); "resampled": one critic that TorchRL copies and re-samples (the pre-session-15 runs)
+        init = str(cfg.network.get("critic_init", "own"))
+        if init not in ("own", "resampled"):
+            raise ValueError(f"network.critic_init must be 'own' or 'resampled', got {init!r}")
+        critics = [
+            make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form)
+            for _ in range(2 if init == "own" else 1)
+        ]
+        for critic in critics:
+            self._init_window(critic.module.mlp)
+        self.critic = critics[0]
         self.loss = DSACTLoss(
             self.filter.stochastic_actor(),
-            self.critic,
+            critics if len(critics) > 1 else self.critic,
             num_qvalue_nets=2,
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
@@ -113,6 +125,14 @@ class DSACTTrainer(FilterTrainer):
             list(self.loss.actor_network_params.flatten_keys().values()), lr=float(o.lr_actor)
         )
         self.optim_alpha = torch.optim.Adam([self.loss.log_alpha], lr=float(o.lr_alpha))
+
+    def _init_window(self, mlp: torch.nn.Sequential) -> None:
+        """``network.window_init=newest``: the network starts on the window's newest frame alone."""
+        init = str(self.cfg.network.get("window_init", "uniform"))
+        if init not in WINDOW_INITS:
+            raise ValueError(f"network.window_init must be one of {WINDOW_INITS}, got {init!r}")
+        if init == "newest":
+            start_on_newest_frame(mlp, (self.filter.config.window - 1) * self.filter.frame_dim)
 
     def _start_at_the_reference(self) -> None:
         """A residual policy starts at zero: the deterministic filter is the reference-gain update itself.

@@ -9,10 +9,30 @@ from torchrl.modules import MLP
 
 from daof.filters.learned import LearnedFilter
 
-__all__ = ["CRITIC_FORMS", "FilterCritic", "make_critic"]
+__all__ = ["CRITIC_FORMS", "WINDOW_INITS", "FilterCritic", "make_critic", "start_on_newest_frame"]
 
 #: "mlp": Q from an MLP on (h, a) | "quadratic": μ = V(h) − Σ_i p_i(h)(a_i − m_i(h))² (NAF-style)
 CRITIC_FORMS = ("mlp", "quadratic")
+#: first-layer init over the window: "uniform" (PyTorch's default on every input) | "newest"
+#: (``start_on_newest_frame``)
+WINDOW_INITS = ("uniform", "newest")
+
+
+def start_on_newest_frame(mlp: nn.Sequential, older_width: int) -> None:
+    """Zero the first layer's weights on the N − 1 older frames (the first ``older_width`` inputs).
+
+    The other inputs (the newest frame, ν_t, ρ_t, the action) get PyTorch's default init for
+    their own fan-in, so the network starts as the same network on a one-frame window would, and
+    the older frames enter only as far as their gradients move those weights.
+    """
+    first = next(m for m in mlp if isinstance(m, nn.Linear))
+    if not 0 <= older_width < first.in_features:
+        raise ValueError(f"older_width must be in [0, {first.in_features}), got {older_width}")
+    bound = 1.0 / (first.in_features - older_width) ** 0.5
+    with torch.no_grad():
+        first.weight[:, :older_width].zero_()
+        first.weight[:, older_width:].uniform_(-bound, bound)
+        first.bias.uniform_(-bound, bound)
 
 
 class FilterCritic(nn.Module):
