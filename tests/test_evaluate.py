@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
+from daof.evaluate.metrics import count_diverged, paired_rmse_ratio, per_run_rmse, pooled_rmse
 from daof.evaluate.study import FilterResult, _add_oracle_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,6 +55,25 @@ def test_metrics_reject_mismatched_shapes():
         pooled_rmse(torch.zeros(2, 3, 2), torch.zeros(2, 3, 1))
 
 
+def test_paired_rmse_ratio_by_hand():
+    filt = torch.tensor([[1.0, 2.0], [3.0, 2.0], [1.0, 2.0]])
+    ref = torch.tensor([[2.0, 2.0], [2.0, 2.0], [2.0, 1.0]])
+    c = paired_rmse_ratio(filt, ref, draws=2000)
+    # pooled MSE = mean of per-run MSEs: β sqrt((1 + 9 + 1) / 12), r sqrt(12 / 9)
+    assert c["ratio"] == pytest.approx([math.sqrt(11 / 12), math.sqrt(12 / 9)])
+    assert c["better_runs"] == [2, 0] and c["runs"] == 3
+    for j in range(2):
+        assert c["low"][j] <= c["ratio"][j] <= c["high"][j]
+    assert c["low"][0] < 1 < c["high"][0]  # run 2 goes the other way: the interval spans 1
+    assert c["low"][1] >= 1.0  # r is never better on any run: no resample gets below 1
+    same = paired_rmse_ratio(ref, ref)
+    assert same["ratio"] == same["low"] == same["high"] == [1.0, 1.0]
+    with pytest.raises(ValueError, match="same shape"):
+        paired_rmse_ratio(filt, ref[:2])
+    with pytest.raises(ValueError, match="level"):
+        paired_rmse_ratio(filt, ref, level=1.0)
+
+
 def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
     """The main job (tiny profile: tiny nets, a handful of updates) runs every filter and writes
     report.md, results.csv, results.json and every figure; a second run reuses everything."""
@@ -82,6 +101,12 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
     assert results["filters"]["PF-oracle"]["ratio_to_oracle"] == [1.0, 1.0]
     assert [r["window"] for r in results["window_study"]] == [1, 20]
     assert "| DAOF-v1 |" in (report / "report.md").read_text()
+    paired = results["paired_with"]
+    assert paired["reference"] == "UKF" and set(paired["filters"]) == expected - {"UKF"}
+    daof = paired["filters"]["DAOF-v1"]
+    ukf, own = (torch.tensor(results["filters"][k]["rmse"]) for k in ("UKF", "DAOF-v1"))
+    torch.testing.assert_close(torch.tensor(daof["ratio"], dtype=torch.float64), (own / ukf).double())
+    assert "## Paired with the UKF" in (report / "report.md").read_text()
 
     # again, with the dropout study: trainings and the main study are reused, the gappy one is new
     gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps

@@ -1,4 +1,4 @@
-"""WeightedSampler: draws ∝ the weight written with each transition; start-up weights of a DSAC-T run."""
+"""WeightedSampler: draws ∝ the weight written with each transition; the weights a DSAC-T run writes."""
 
 import pytest
 import torch
@@ -8,7 +8,7 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from daof.filters.learned import startup_feature
 from daof.train.dsac import DSACTTrainer
-from daof.train.sampling import WeightedSampler
+from daof.train.sampling import ReplayPriority, WeightedSampler
 
 
 def buffer_with(weights: list[float], capacity: int = 10) -> TensorDictReplayBuffer:
@@ -50,5 +50,38 @@ def test_dsac_run_weights_transitions_by_their_start_up_step(tmp_path):
     expected = 1.0 + k * startup_feature(steps).squeeze(-1) ** 2
     torch.testing.assert_close(trainer.buffer._sampler.weights[: len(steps)], expected)
     assert expected.max() == 1.0 + k  # the data holds first steps
-    with pytest.raises(ValueError, match="startup_priority must be >= 0"):
+    with pytest.raises(ValueError, match="startup_priority must be finite and >= 0"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "b", **{"buffer.startup_priority": -1.0}))
+
+
+def test_dsac_run_weights_transitions_by_their_previous_estimate(tmp_path):
+    k, scale = 3.0, 0.1  # β only: veh2dof's default scale leaves r out
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"collector.total_frames": 300, "buffer.estimate_priority": k})
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    stored = trainer.buffer.storage.get(torch.arange(len(trainer.buffer)))
+    expected = 1.0 + k * (stored["prev_estimate"][:, 0] / scale) ** 2
+    torch.testing.assert_close(trainer.buffer._sampler.weights[: len(expected)], expected)
+    assert (expected > 1.0).any()  # the data holds non-zero slip estimates
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"buffer.estimate_priority": float("nan")}, "estimate_priority must be finite"),
+        ({"buffer.estimate_priority": 1.0, "buffer.estimate_priority_scale": [0.1]}, "one scale"),
+        ({"buffer.estimate_priority": 1.0, "buffer.estimate_priority_scale": [0.0, None]}, "> 0 or null"),
+        ({"buffer.estimate_priority": 1.0, "buffer.estimate_priority_scale": [None, None]}, "every state out"),
+    ],
+)
+def test_estimate_priority_rejects_bad_configs(tmp_path, overrides, message):
+    with pytest.raises(ValueError, match=message):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **overrides))
+
+
+def test_replay_priority_adds_both_terms():
+    priority = ReplayPriority(startup=2.0, estimate=4.0, inverse_scale=(10.0, 0.0))
+    step = torch.tensor([[1], [100]])
+    prev = torch.tensor([[0.05, 9.0], [-0.2, 9.0]])  # r is left out
+    rho = startup_feature(step).squeeze(-1)
+    torch.testing.assert_close(priority(step, prev), 1.0 + 2.0 * rho**2 + 4.0 * torch.tensor([0.25, 4.0]))

@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from daof.evaluate import figures
+from daof.evaluate.metrics import paired_rmse_ratio
 from daof.evaluate.study import ORACLE
 
 __all__ = [
@@ -134,6 +135,38 @@ def _results_table(study) -> list[str]:
     return lines
 
 
+def paired_comparison(study, reference: str) -> dict[str, dict]:
+    """Every other filter's pooled-RMSE ratio to ``reference`` with its paired bootstrap interval."""
+    base = torch.tensor(study.results[reference].per_run_rmse)
+    return {
+        name: paired_rmse_ratio(torch.tensor(r.per_run_rmse), base)
+        for name, r in study.results.items()
+        if name != reference
+    }
+
+
+def _paired_lines(study, reference: str, comparison: dict[str, dict]) -> list[str]:
+    names = study.system.state_names
+    level = round(100 * next(iter(comparison.values()))["level"])
+    lines = [
+        f"## Paired with the {reference}",
+        "",
+        f"Pooled RMSE over the {reference}'s on the same {study.runs} runs, with a {level} % paired bootstrap "
+        "interval over runs (4,000 resamples; `daof.evaluate.metrics.paired_rmse_ratio`): how far a difference "
+        "in the results table stands out of the run-to-run spread. Below 1 is better.",
+        "",
+        "| filter | "
+        + " | ".join(f"{n}: ratio [{level} % interval]" for n in names)
+        + f" | runs better ({' / '.join(names)}) |",
+        "|---|" + "---|" * (len(names) + 1),
+    ]
+    for name, c in comparison.items():
+        cells = [f"{c['ratio'][j]:.3f} [{c['low'][j]:.3f}, {c['high'][j]:.3f}]" for j in range(len(names))]
+        better = " / ".join(f"{b}/{c['runs']}" for b in c["better_runs"])
+        lines.append(f"| {name} | {' | '.join(cells)} | {better} |")
+    return lines + [""]
+
+
 def _dropout_lines(study) -> list[str]:
     """What was missing, when the study ran on data with measurement gaps (``run_study(dropout=...)``)."""
     info = getattr(study, "dropout", None)
@@ -229,6 +262,7 @@ def write_report(
     meta: dict | None = None,
     per_state: bool = False,
     requirements: list[dict] | None = None,
+    paired_with: str | None = None,
 ) -> Path:
     """Write ``report.md``, ``results.csv``, ``results.json`` and figures into ``out_dir``.
 
@@ -237,6 +271,7 @@ def write_report(
     one state/error figure per state instead of one figure of all states.
     ``requirements``: ``{"requirement": text, "met": bool, "detail": text}`` each, stated as met or
     not met in a section of their own (and in results.json); the caller decides them from the numbers.
+    ``paired_with``: a filter of the study every other one is compared with run by run (``paired_comparison``).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -252,6 +287,9 @@ def write_report(
         payload["training"] = training
     if requirements:
         payload["requirements"] = requirements
+    paired = paired_comparison(study, paired_with) if paired_with else None
+    if paired:
+        payload["paired_with"] = {"reference": paired_with, "filters": paired}
     (out / "results.json").write_text(json.dumps(payload, indent=2))
     with (out / "results.csv").open("w", newline="") as fh:
         writer = csv.writer(fh)
@@ -302,6 +340,7 @@ def write_report(
         *(_state_columns_table(study, units) if per_state else _results_table(study)),
         "",
         *_reference_lines(study),
+        *(_paired_lines(study, paired_with, paired) if paired else []),
     ]
     if requirements:
         lines += ["## Requirements", ""]

@@ -26,11 +26,10 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
-from daof.filters.learned import startup_feature
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
-from daof.train.sampling import WeightedSampler
+from daof.train.sampling import ReplayPriority, WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FilteringEnv
 from envs.gaps import GappySystem
@@ -207,13 +206,8 @@ class DSACTTrainer(FilterTrainer):
             env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding, missing_flags=flags
         )
         size = int(cfg.buffer.size)
-        self.startup_priority = float(cfg.buffer.get("startup_priority", 0.0))
-        if self.startup_priority < 0:
-            raise ValueError(f"buffer.startup_priority must be >= 0, got {self.startup_priority}")
-        # start-up transitions are few (1 step in T is t = 1) and need other updates than the settled
-        # filter: k > 0 samples step t with weight 1 + k·ρ_t² (γ = 0 makes this a re-weighting of
-        # the states the filter is fitted on, so no importance correction)
-        sampler = WeightedSampler(size) if self.startup_priority > 0 else None
+        self.priority = ReplayPriority.from_config(cfg.buffer, self.system.state_dim)
+        sampler = WeightedSampler(size) if self.priority.active else None
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(size),
             sampler=sampler,
@@ -283,13 +277,12 @@ class DSACTTrainer(FilterTrainer):
 
     def to_replay(self, batch: TensorDictBase) -> TensorDictBase:
         """A collected batch as flat replay transitions: unused keys dropped, the reward baseline
-        taken off (``reward.baseline``), the start-up priority set."""
+        taken off (``reward.baseline``), the sampling weight set (``buffer.*_priority``)."""
         batch = batch.reshape(-1).exclude(*_DROP_KEYS)
         if self.baseline is not None:
             batch = self.baseline.subtract(batch)
-        if self.startup_priority > 0:
-            rho = startup_feature(batch["step"]).squeeze(-1)
-            batch[_PRIORITY_KEY] = 1.0 + self.startup_priority * rho**2
+        if self.priority.active:
+            batch[_PRIORITY_KEY] = self.priority(batch["step"], batch["prev_estimate"])
         return batch
 
     def set_learning_rates(self) -> float:

@@ -198,6 +198,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         window_rows=window_rows,
         training=training_costs(jobs),
         notes=scenario_notes(cfg, p, change),
+        paired_with="UKF",
         meta={
             "wall_time_s": round(wall, 1),
             "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario}",
