@@ -68,16 +68,19 @@ def main() -> None:
         for name, err in errors.items():
             print(f"| {name} | " + " | ".join(_rmse(err[:, t - 1 : t]) for t in per_step) + " |")
     if args.large_slip is not None and args.system == "veh2dof":
-        large = data["state"][..., 0].abs().amax(1) > args.large_slip
+        peaks = data["state"][..., 0].abs().amax(1)
+        large = peaks > args.large_slip
+        first = args.only_run or 0  # run indices of the whole data set
         print(
             f"\n| filter | {int(large.sum())} runs with max |β| > {args.large_slip} | the other {int((~large).sum())} |"
         )
         print("|---|---|---|")
         for name, err in errors.items():
-            print(f"| {name} | {_rmse(err[large]) if large.any() else '-'} | {_rmse(err[~large])} |")
-        peaks = data["state"][..., 0].abs().amax(1)
+            cells = [_rmse(err[subset]) if subset.any() else "-" for subset in (large, ~large)]
+            print(f"| {name} | {cells[0]} | {cells[1]} |")
         print(
-            "\nthose runs (index: max |β| rad): " + ", ".join(f"{i}: {peaks[i]:.3f}" for i in large.nonzero().flatten())
+            "\nthose runs (index: max |β| rad): "
+            + ", ".join(f"{i + first}: {peaks[i]:.3f}" for i in large.nonzero().flatten().tolist())
         )
     if edges and args.system == "veh2dof":
         slip = data["state"][..., 0].abs()

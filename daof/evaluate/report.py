@@ -135,11 +135,15 @@ def _results_table(study) -> list[str]:
     return lines
 
 
+#: bootstrap resamples of the report's paired comparison
+PAIRED_DRAWS = 4000
+
+
 def paired_comparison(study, reference: str) -> dict[str, dict]:
     """Every other filter's pooled-RMSE ratio to ``reference`` with its paired bootstrap interval."""
     base = torch.tensor(study.results[reference].per_run_rmse)
     return {
-        name: paired_rmse_ratio(torch.tensor(r.per_run_rmse), base)
+        name: paired_rmse_ratio(torch.tensor(r.per_run_rmse), base, draws=PAIRED_DRAWS)
         for name, r in study.results.items()
         if name != reference
     }
@@ -152,8 +156,8 @@ def _paired_lines(study, reference: str, comparison: dict[str, dict]) -> list[st
         f"## Paired with the {reference}",
         "",
         f"Pooled RMSE over the {reference}'s on the same {study.runs} runs, with a {level} % paired bootstrap "
-        "interval over runs (4,000 resamples; `daof.evaluate.metrics.paired_rmse_ratio`): how far a difference "
-        "in the results table stands out of the run-to-run spread. Below 1 is better.",
+        f"interval over runs ({PAIRED_DRAWS:,} resamples; `daof.evaluate.metrics.paired_rmse_ratio`): how far a "
+        "difference in the results table stands out of the run-to-run spread. Below 1 is better.",
         "",
         "| filter | "
         + " | ".join(f"{n}: ratio [{level} % interval]" for n in names)
