@@ -27,7 +27,12 @@ from torchrl.envs import EnvBase
 from envs.gaps import MISSING_KEY
 from envs.system import StochasticSystem
 
-__all__ = ["FilteringEnv", "make_env"]
+__all__ = ["FilteringEnv", "default_reward_weights", "make_env"]
+
+
+def default_reward_weights(system: StochasticSystem) -> torch.Tensor:
+    """W = 1 / (n · s²) per state, s the system's ``error_scale`` (module docstring)."""
+    return 1.0 / (system.state_dim * system.error_scale**2)
 
 
 class FilteringEnv(EnvBase):
@@ -64,7 +69,7 @@ class FilteringEnv(EnvBase):
         self.max_steps = int(max_steps)
         n = system.state_dim
         if reward_weights is None:
-            reward_weights = 1.0 / (n * system.error_scale**2)
+            reward_weights = default_reward_weights(system)
         self.reward_weights = torch.as_tensor(reward_weights, dtype=torch.float32, device=self.device)
         w = self.reward_weights
         if w.ndim not in (1, 2) or w.shape[-1] != n or w.numel() == 0 or (w < 0).any() or not torch.isfinite(w).all():

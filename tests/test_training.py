@@ -313,6 +313,47 @@ def test_a_quadratic_critic_is_a_concave_quadratic_in_the_action_and_trains(tmp_
         torch.testing.assert_close(third, torch.zeros_like(third), atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_a_reward_quadratic_critic_has_the_rewards_own_curvature_and_trains(tmp_path, version):
+    """``network.critic_form=reward_quadratic``: μ = V(h) − Σ_i W_t,i w_t,i² (a_i − m_i(h))² with the
+    reward's weights W_t and the action's state-unit width w_t (DAOF-v1: its bound b_t at step t;
+    DAOF-v2: the estimate's half-range), so the second difference along each action axis is
+    the reward's own, for every window and step."""
+    cfg = tiny_cfg(
+        "config.yaml",
+        tmp_path,
+        version=version,
+        **{"collector.total_frames": 300, "network.critic_form": "reward_quadratic"},
+    )
+    cfg.loss.gamma = 0.0
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    assert trainer.updates > 0
+    f, env = trainer.filter, trainer.base_env
+    batch = trainer.buffer.sample()[:16]
+    key, n = f.action_key, trainer.system.state_dim
+    step = batch.get("step", None)
+    width = (f.high - f.low) / 2 * (f.bound_at(step) if f.acts_by_update else 1.0)
+    w = env.reward_weights
+    if w.ndim == 2:  # W_t of the step being estimated
+        w = w[step.squeeze(-1).clamp(1, len(w)) - 1]
+    mid, half = (f.high + f.low) / 2, (f.high - f.low) / 2
+    for i in range(n):
+        mus = []
+        for a_i in (-0.5, 0.0, 0.5):
+            td = batch.clone()
+            td[key][..., i] = (mid + a_i * half)[i]
+            mus.append(trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)[0].squeeze(-1))
+        second = mus[0] - 2 * mus[1] + mus[2]
+        torch.testing.assert_close(second, -0.5 * (w * width.pow(2))[..., i].expand_as(second), rtol=1e-4, atol=1e-4)
+
+
+def test_a_reward_quadratic_critic_needs_gamma_zero(tmp_path):
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "reward_quadratic", "loss.gamma": 0.5})
+    with pytest.raises(ValueError, match="exact only with loss.gamma=0"):
+        DSACTTrainer(cfg)
+
+
 def test_an_unknown_critic_form_is_refused(tmp_path):
     cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "cubic"})
     with pytest.raises(ValueError, match="critic form must be one of"):

@@ -31,7 +31,7 @@ from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
 from daof.train.sampling import ReplayPriority, WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
-from envs.filtering_env import FilteringEnv
+from envs.filtering_env import FilteringEnv, default_reward_weights
 from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
@@ -95,8 +95,13 @@ class DSACTTrainer(FilterTrainer):
         init = str(cfg.network.get("critic_init", "own"))
         if init not in ("own", "resampled"):
             raise ValueError(f"network.critic_init must be 'own' or 'resampled', got {init!r}")
+        weights = None
+        if form == "reward_quadratic":  # the reward's curvature in the action is known only at γ = 0
+            if float(cfg.loss.gamma) != 0.0:
+                raise ValueError("network.critic_form=reward_quadratic is exact only with loss.gamma=0")
+            weights = self.reward_weights if self.reward_weights is not None else default_reward_weights(self.system)
         critics = [
-            make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form)
+            make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form, weights)
             for _ in range(2 if init == "own" else 1)
         ]
         for critic in critics:

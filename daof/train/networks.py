@@ -7,12 +7,13 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import MLP
 
-from daof.filters.learned import LearnedFilter
+from daof.filters.learned import LearnedFilter, schedule_row
 
 __all__ = ["CRITIC_FORMS", "WINDOW_INITS", "FilterCritic", "make_critic", "start_on_newest_frame"]
 
-#: "mlp": Q from an MLP on (h, a) | "quadratic": μ = V(h) − Σ_i p_i(h)(a_i − m_i(h))² (NAF-style)
-CRITIC_FORMS = ("mlp", "quadratic")
+#: "mlp": Q from an MLP on (h, a) | "quadratic": μ = V(h) − Σ_i p_i(h)(a_i − m_i(h))² (NAF-style) |
+#: "reward_quadratic": the same with p_i the reward's own curvature in the action (exact at γ = 0)
+CRITIC_FORMS = ("mlp", "quadratic", "reward_quadratic")
 #: first-layer init over the window: "uniform" (PyTorch's default on every input) | "newest"
 #: (``start_on_newest_frame``)
 WINDOW_INITS = ("uniform", "newest")
@@ -47,24 +48,44 @@ class FilterCritic(nn.Module):
     increment) and γ = 0 this is the exact form of Q, so the critic's argmax m(h) is never
     misranked by the shape of the fit; the sum over i∈k is over every state (one reward term)
     or over state k alone (a critic per state).
+
+    ``form="reward_quadratic"`` keeps that mean but does not learn p: at γ = 0 it is known. The
+    reward −Σ_i W_i(x_i − x̂_i)² with x̂_i = c_i + w_i a_i (w_i the action's half-range times the
+    update bound b_t where the actor acts by updates) is −Σ_i W_i w_i² (a_i − a*_i)², so
+    p_i = W_i w_i² and the critic learns only V(h), its scale and m(h) = E[a* | h], the action of
+    the estimate E[x | h]. Its action-ranking is then exact by construction, and its precision is
+    that of the regression m(h), not that of a surface fitted over the whole action range
+    (docs/experiment2.md, session 18). ``reward_weights`` is W ([n], or a [S, n] schedule read
+    at the step the actor reads; without the step, its settled row).
     """
 
     def __init__(
-        self, actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1, form: str = "mlp"
+        self,
+        actor: LearnedFilter,
+        num_cells: int = 256,
+        depth: int = 3,
+        reward_terms: int = 1,
+        form: str = "mlp",
+        reward_weights: torch.Tensor | None = None,
     ):
         super().__init__()
         if form not in CRITIC_FORMS:
             raise ValueError(f"critic form must be one of {CRITIC_FORMS}, got {form!r}")
+        if (form == "reward_quadratic") != (reward_weights is not None):
+            raise ValueError("reward_weights are needed by, and only by, the 'reward_quadratic' critic form")
         n = actor.system.state_dim
         if reward_terms not in (1, n):
             raise ValueError(f"reward_terms must be 1 or the state dim {n}, got {reward_terms}")
         self._actor = [actor]  # a reference, not a submodule: its weights are not the critic's
         self.form = form
         self.reward_terms = reward_terms
-        quadratic = form == "quadratic"
+        known = form == "reward_quadratic"
+        quadratic = form != "mlp"
+        if known:
+            self.register_buffer("reward_weights", torch.as_tensor(reward_weights, dtype=torch.float32).clone())
         self.mlp = MLP(
             in_features=actor.policy.feature_dim + (0 if quadratic else n),
-            out_features=2 * reward_terms + (2 * n if quadratic else 0),
+            out_features=2 * reward_terms + ((n if known else 2 * n) if quadratic else 0),
             depth=depth,
             num_cells=num_cells,
             activation_class=nn.GELU,
@@ -82,17 +103,36 @@ class FilterCritic(nn.Module):
         if self.form == "mlp":
             return self.mlp(torch.cat([h, a], -1))
         K, n = self.reward_terms, a.shape[-1]
-        value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
-        penalty = nn.functional.softplus(curvature) * (a - best).pow(2)
+        if self.form == "quadratic":
+            value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
+            curvature = nn.functional.softplus(curvature)
+        else:
+            value, raw_scale, best = self.mlp(h).split([K, K, n], -1)
+            curvature = self.reward_curvature(step)
+        penalty = curvature * (a - best).pow(2)
         if K == 1:
             penalty = penalty.sum(-1, keepdim=True)
         return torch.stack([value - penalty, raw_scale], -1).flatten(-2)
 
+    def reward_curvature(self, step=None) -> torch.Tensor:
+        """p_t = W_t ⊙ w_t², the reward's curvature in the critic's action units (``reward_quadratic``)."""
+        actor = self._actor[0]
+        width = (actor.high - actor.low) / 2
+        if actor.acts_by_update:
+            width = width * actor.bound_at(step)
+        weights = self.reward_weights if self.reward_weights.ndim == 1 else schedule_row(self.reward_weights, step)
+        return weights * width.pow(2)
+
 
 def make_critic(
-    actor: LearnedFilter, num_cells: int = 256, depth: int = 3, reward_terms: int = 1, form: str = "mlp"
+    actor: LearnedFilter,
+    num_cells: int = 256,
+    depth: int = 3,
+    reward_terms: int = 1,
+    form: str = "mlp",
+    reward_weights: torch.Tensor | None = None,
 ) -> TensorDictModule:
     """Critic reading (h_t^N, t where the actor reads it, the action key), writing ``state_action_value`` [.., 2K]."""
-    net = FilterCritic(actor, num_cells, depth, reward_terms, form)
+    net = FilterCritic(actor, num_cells, depth, reward_terms, form, reward_weights)
     in_keys = dict(zip(["window", "step"], actor.policy_in_keys)) | {"action": actor.action_key}
     return TensorDictModule(net, in_keys=in_keys, out_keys=["state_action_value"])
