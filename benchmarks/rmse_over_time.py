@@ -2,11 +2,13 @@
 
     .venv/bin/python benchmarks/rmse_over_time.py --system linear runs/linear/nominal/daof-v1-N20-s1/best.pt
     .venv/bin/python benchmarks/rmse_over_time.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python benchmarks/rmse_over_time.py --system veh14dof runs/experiment2/paper/nominal/*/best.pt
 
 Data: the training runs' validation set (20 runs × 500 steps, seed 9100; ``--runs``/``--seed``
 for other data). References: the Kalman filter on ``linear``; UKF and a 1000-particle PF on
-``veh2dof``. Columns: all steps, t ≥ --settled, t < --startup. ``--per-step 1,2,3`` adds a table
-of the RMSE at each of those steps t (over runs). ``--large-slip 0.15`` (veh2dof) adds a table
+``veh2dof``; none on ``veh14dof`` (no model), whose RMSEs are in SI units. Columns: all steps,
+t ≥ --settled, t < --startup. ``--per-step 1,2,3`` adds a table of the RMSE at each of those
+steps t (over runs). ``--large-slip 0.15`` (veh2dof) adds a table
 split into the runs whose true |β| ever exceeds that many rad and the others, and lists those runs.
 ``--slip-bins 0.1,0.2,0.3`` (veh2dof) adds the β RMSE by bins of the true |β| over all steps;
 ``--only-run K`` keeps run K of the data only (e.g. one spin-out).
@@ -24,13 +26,13 @@ from envs import make_system
 
 
 def _rmse(err: torch.Tensor) -> str:
-    return "[" + ", ".join(f"{v:.5f}" for v in err.pow(2).mean((0, 1)).sqrt().tolist()) + "]"
+    return "[" + ", ".join(f"{v:.4g}" for v in err.pow(2).mean((0, 1)).sqrt().tolist()) + "]"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("checkpoints", nargs="+")
-    parser.add_argument("--system", default="veh2dof", choices=["veh2dof", "linear"])
+    parser.add_argument("--system", default="veh2dof", choices=["veh2dof", "linear", "veh14dof"])
     parser.add_argument("--settled", type=int, default=50)
     parser.add_argument("--startup", type=int, default=20)
     parser.add_argument("--per-step", default="", help="comma-separated steps t >= 1 for a per-step table")
@@ -55,8 +57,10 @@ def main() -> None:
         data = data[args.only_run : args.only_run + 1]
     if args.system == "linear":
         filters = {"Kalman filter": KalmanFilter(system)}
-    else:
+    elif args.system == "veh2dof":
         filters = {"UKF": UKF(system), "PF (1000)": ParticleFilter(system, 1000, seed=0)}
+    else:
+        filters = {}
     filters.update({path: load_filter(path, system) for path in args.checkpoints})
     print(f"| filter | all steps | t ≥ {args.settled} | t < {args.startup} |\n|---|---|---|---|")
     errors = {name: filt.run(data) - data["state"] for name, filt in filters.items()}

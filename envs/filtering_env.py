@@ -12,6 +12,11 @@ since the reset: 1 right after it; DAOF-v1 sizes its update bound by it). The tr
 it, and a filter that did would be cheating. A system with gaps (``envs.gaps.GappySystem``) adds
 ``missing``, the 0/1 flags of the channels whose measurement is a held value.
 
+Fed-back estimate. The next step's ``prev_estimate`` is the action, unless the policy also
+writes ``fed_back_estimate`` (``FEEDBACK_KEY``): then that is fed back while the reward scores the
+action. A DSAC-T collector uses it to feed back the policy's deterministic estimate, the one the
+deployed filter feeds back, and to explore in the reward only (``daof.train.dsac``, ``collector.feedback``).
+
 Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (about
 the RMSE of a near-optimal filter per state), so a near-optimal filter earns about −1 per step
 and both states count equally relative to what is achievable.
@@ -27,7 +32,10 @@ from torchrl.envs import EnvBase
 from envs.gaps import MISSING_KEY
 from envs.system import StochasticSystem
 
-__all__ = ["FilteringEnv", "default_reward_weights", "make_env"]
+__all__ = ["FEEDBACK_KEY", "FilteringEnv", "default_reward_weights", "make_env"]
+
+#: optional policy output: the estimate to feed back as the next ``prev_estimate`` (default: the action)
+FEEDBACK_KEY = "fed_back_estimate"
 
 
 def default_reward_weights(system: StochasticSystem) -> torch.Tensor:
@@ -165,8 +173,11 @@ class FilteringEnv(EnvBase):
         if weights.ndim == 2:  # W_t of the step being estimated
             weights = weights[self._sim["t"].clamp(1, len(weights)) - 1]
         reward_per_state = -(error.pow(2) * weights)
+        fed_back = tensordict.get(FEEDBACK_KEY, None)
+        if fed_back is not None and fed_back.shape != estimate.shape:
+            raise ValueError(f"{FEEDBACK_KEY} has shape {tuple(fed_back.shape)}, the action {tuple(estimate.shape)}")
         self._sim, self._obs = self.system.advance(self._sim, self.rng)
-        self._prev_estimate = estimate.detach().clone()
+        self._prev_estimate = (estimate if fed_back is None else fed_back).detach().clone()
         # sim["t"] counts measured steps; the episode ends after max_steps estimates.
         truncated = (self._sim["t"] > self.max_steps).unsqueeze(-1)
         return TensorDict(

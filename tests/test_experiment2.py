@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RECIPE = ROOT / "recipes" / "veh14dof"
 STATES = ["pitch", "roll", "yaw_rate", "side_slip", "vx", "ax"]
 UNITS = ["deg", "deg", "deg/s", "deg", "km/h", "g"]
-ROWS = {"SLF", "DAOF-v2", "DAOF-v2 (increment, MLP critic)"}  # experiment.yaml: SLF and v2_rows
+ROWS = {"SLF", "DAOF-v2"}  # experiment.yaml: SLF and v2_rows
 FIGURES = [f"run0_{s}.png" for s in STATES] + ["per_run_rmse_box.png", "learning_curves.png"]
 
 
@@ -82,10 +82,10 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path):
         )
     p = cfg.profiles.tiny
     jobs = recipe.training_jobs(cfg, p, tmp_path)
-    # each DAOF-v2 row trains with its own form, in its own directory
+    # the DAOF-v2 row trains with its own form, in its own directory
     assert "network.critic_form=reward_quadratic" in jobs["DAOF-v2"].overrides
     assert not any("v2_action" in a for a in jobs["DAOF-v2"].overrides)  # the paper's x̂ = π(h)
-    assert "network.v2_action=increment" in jobs["DAOF-v2 (increment, MLP critic)"].overrides
+    assert "collector.feedback=mean" in jobs["DAOF-v2"].overrides  # fed back as at run time
     assert len({job.output_dir for job in jobs.values()}) == len(ROWS)
     for job in jobs.values():
         _train_in_process(job)

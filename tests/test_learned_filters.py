@@ -15,6 +15,7 @@ from daof.filters.learned import (
 )
 from daof.train.schedules import ukf_schedule
 from envs import make_env, make_system
+from envs.filtering_env import FEEDBACK_KEY
 
 
 def small(kind, window=4, system="veh2dof", **config):
@@ -55,6 +56,31 @@ def test_exploration_policy_deterministic_mode_is_the_filter():
     with torch.no_grad():
         b = env.rollout(10, f.filter_module(), break_when_any_done=False)["action"]
     torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "DAOF-v2-increment"])
+def test_mean_feedback_feeds_back_the_deterministic_estimate_while_the_action_explores(kind):
+    """``exploration_policy("mean")``: the env's next x̂_{t−1} is the filter's own estimate, the action is sampled.
+
+    Its fed-back estimates are exactly the deterministic filter's closed loop on the same data,
+    while the sampled actions (what the reward scores) differ from them.
+    """
+    extra = {"v2_action": "increment"} if kind.endswith("increment") else {}
+    f = small(kind.removesuffix("-increment"), **extra)
+    env = make_env("veh2dof", batch_size=3, window=4, seed=7, max_steps=12)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # as a collector runs it
+        out = env.rollout(12, f.exploration_policy("mean"), break_when_any_done=False)
+    torch.testing.assert_close(out["next", "prev_estimate"], out[FEEDBACK_KEY], rtol=0, atol=0)
+    data = f.system.simulate(3, 12, seed=7)
+    torch.testing.assert_close(out[FEEDBACK_KEY], f.run(data), rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(out["action"], out[FEEDBACK_KEY])
+    # the default feeds back the sampled action itself
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        out = env.rollout(12, f.exploration_policy(), break_when_any_done=False)
+    assert FEEDBACK_KEY not in out.keys()
+    torch.testing.assert_close(out["next", "prev_estimate"], out["action"], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="feedback must be one of"):
+        f.exploration_policy("noisy")
 
 
 def test_v1_update_is_the_unit_action_times_the_bound_of_its_step():

@@ -11,6 +11,7 @@ from tensordict import TensorDict
 
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
+from envs.filtering_env import FEEDBACK_KEY
 from envs.gaps import training_dropout_mask
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "veh2dof"
@@ -229,6 +230,21 @@ def test_learning_rates_follow_a_cosine_to_the_final_fraction(tmp_path):
     assert constant.set_learning_rates() == pytest.approx(1.0)
 
 
+def test_slf_learning_rate_follows_the_same_cosine(tmp_path):
+    """The SLF's ``optim.lr_final``: its Adam lr after the last batch is lr times the cosine at the budget."""
+    cfg = tiny_cfg("slf.yaml", tmp_path, **{"collector.total_frames": 1000, "optim.lr_final": 0.2})
+    trainer = SLFTrainer(cfg)
+    trainer.train()
+    # the lr of the last batch is set at the frames seen before it: 1 batch of 4 × (50 − ...) windows earlier
+    last_batch = trainer.frames - trainer.frames // trainer.batches
+    expected = 0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi * last_batch / 1000))
+    assert trainer.optim.param_groups[0]["lr"] == pytest.approx(float(cfg.optim.lr) * expected)
+    assert expected < 0.5
+    cfg = tiny_cfg("slf.yaml", tmp_path / "bad", **{"optim.lr_final": 0.0})
+    with pytest.raises(ValueError, match="lr_final must be in"):
+        SLFTrainer(cfg).train()
+
+
 def test_shared_reward_weights_keep_the_settled_ratio_between_states():
     """kalman_shared: one factor per step (the settled over the step's expected reward), so W_t ∝ W."""
     from daof.train.schedules import reward_weight_schedule
@@ -352,6 +368,23 @@ def test_a_reward_quadratic_critic_needs_gamma_zero(tmp_path):
     cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "reward_quadratic", "loss.gamma": 0.5})
     with pytest.raises(ValueError, match="exact only with loss.gamma=0"):
         DSACTTrainer(cfg)
+
+
+def test_mean_feedback_needs_gamma_zero_and_trains(tmp_path):
+    """``collector.feedback=mean`` is refused with γ > 0 and, at γ = 0, trains with clean windows in the buffer."""
+    cfg = tiny_cfg("config.yaml", tmp_path / "a", **{"collector.feedback": "mean", "loss.gamma": 0.5, "version": "v2"})
+    with pytest.raises(ValueError, match="feedback=mean keeps each action's value only with loss.gamma=0"):
+        DSACTTrainer(cfg)
+    changes = {"collector.feedback": "mean", "loss.gamma": 0.0, "version": "v2", "collector.total_frames": 300}
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "b", **changes))
+    summary = trainer.train()
+    assert summary["updates"] > 0 and math.isfinite(summary["best"]["score"])
+    stored = trainer.buffer[:]
+    assert FEEDBACK_KEY not in stored.keys()
+    # the next window's newest x̂ is the squashed loc of the step, not the sampled action it was scored on
+    newest = stored["next", "history"][:, -trainer.filter.frame_dim :][:, : trainer.system.state_dim]
+    torch.testing.assert_close(newest, stored["next", "prev_estimate"])
+    assert not torch.allclose(newest, stored["action"])
 
 
 def test_an_unknown_critic_form_is_refused(tmp_path):

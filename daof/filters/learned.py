@@ -28,6 +28,7 @@ from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
 from daof.filters.base import Filter
+from envs.filtering_env import FEEDBACK_KEY
 from envs.history import HISTORY_KEY, PADDINGS
 from envs.registry import make_system
 from envs.system import StochasticSystem
@@ -39,6 +40,8 @@ CORRECTION_BOUNDS = ("kalman", "process", "posterior")
 V2_ACTIONS = ("estimate", "increment")
 #: what a learned filter reads for a missing measurement channel (``LearnedFilter.missing_fill``)
 MISSING_FILLS = ("hold", "prediction")
+#: what a DSAC-T collector feeds back into h_{t+1}: the sampled action or the deterministic estimate
+FEEDBACKS = ("sample", "mean")
 #: length of DAOF-v1's bound schedule b_t; later steps use its last entry (the settled value)
 SCHEDULE_STEPS = 50
 #: window key an SLF reads (measurements and controls only, no fed-back estimates)
@@ -459,17 +462,30 @@ class LearnedFilter(nn.Module, Filter):
             estimate = estimate + reference
         return torch.clamp(estimate, self.state_low, self.state_high)
 
-    def exploration_policy(self) -> TensorDictSequential:
-        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction."""
-        actor = self.stochastic_actor()
-        if not self.acts_by_update:
-            return TensorDictSequential(actor)
-        add = TensorDictModule(
-            self._add_prediction,
-            in_keys=["correction", "prev_estimate", "prev_control", "step", self.input_key],
-            out_keys=["action"],
-        )
-        return TensorDictSequential(actor, add)
+    def squash(self, loc: torch.Tensor) -> torch.Tensor:
+        """The deterministic action of a pre-squash loc: mid + half · tanh(loc) on the actor's bounds."""
+        return torch.addcmul((self.high + self.low) / 2, (self.high - self.low) / 2, torch.tanh(loc))
+
+    def exploration_policy(self, feedback: str = "sample") -> TensorDictSequential:
+        """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction.
+
+        ``feedback="mean"`` also writes ``FEEDBACK_KEY``: the deterministic estimate (the squashed loc,
+        through the same prediction), which the env then feeds back instead of the sampled one.
+        """
+        if feedback not in FEEDBACKS:
+            raise ValueError(f"feedback must be one of {FEEDBACKS}, got {feedback!r}")
+        by_update = ["prev_estimate", "prev_control", "step", self.input_key]
+
+        def plus_prediction(key: str, out_key: str) -> list[TensorDictModule]:
+            if not self.acts_by_update:
+                return []
+            return [TensorDictModule(self._add_prediction, in_keys=[key, *by_update], out_keys=[out_key])]
+
+        modules = [self.stochastic_actor(), *plus_prediction("correction", "action")]
+        if feedback == "mean":
+            modules.append(TensorDictModule(self.squash, in_keys=["loc"], out_keys=[FEEDBACK_KEY]))
+            modules += plus_prediction(FEEDBACK_KEY, FEEDBACK_KEY)
+        return TensorDictSequential(*modules)
 
     def filter_module(self) -> TensorDictModule:
         """Deterministic filter: reads h_t (+ x̂_{t−1}, u_{t−1} for an update, t where used), writes ``action``."""

@@ -87,6 +87,17 @@ class FilterTrainer:
         gaps = self.cfg.get("dropout")
         return (float(gaps.p_max), float(gaps.blackout_s)) if gaps is not None else (0.0, 0.0)
 
+    def lr_factor(self) -> float:
+        """Learning-rate factor on a cosine from 1 to ``optim.lr_final`` (default 1) over ``collector.total_frames``.
+
+        A function of the frame count only, so a resumed run continues the same schedule.
+        """
+        final = float(self.cfg.optim.get("lr_final", 1.0))
+        if not 0.0 < final <= 1.0:
+            raise ValueError(f"optim.lr_final must be in (0, 1], got {final}")
+        progress = min(self.frames / int(self.cfg.collector.total_frames), 1.0)
+        return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
     # ----------------------------------------------------------------- subclass hooks
     def extra_state(self) -> dict:
         """Optimisation state of the subclass (optimisers, loss, buffers, generators)."""

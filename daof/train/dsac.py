@@ -31,7 +31,7 @@ from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
 from daof.train.sampling import ReplayPriority, WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
-from envs.filtering_env import FilteringEnv, default_reward_weights
+from envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
 from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
 from losses import DSACTLoss
@@ -39,7 +39,7 @@ from losses import DSACTLoss
 __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
-_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state"]
+_DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state", FEEDBACK_KEY]
 _PRIORITY_KEY = "sample_priority"
 #: largest exploration std of the automatic entropy target, in units of the action's half-range
 MAX_EXPLORATION_STD = 0.3
@@ -62,6 +62,7 @@ class DSACTTrainer(FilterTrainer):
         self._init_window(self.filter.policy.mlp)
         self._make_loss()
         self._make_data()
+        self.feedback()  # refuse an impossible collector.feedback before any work
 
     # ----------------------------------------------------------------- factories
     def _make_schedules(self) -> None:
@@ -220,12 +221,25 @@ class DSACTTrainer(FilterTrainer):
             batch_size=int(cfg.optim.batch_size),
         )
 
+    def feedback(self) -> str:
+        """``collector.feedback``: what the env feeds back into h_{t+1}, the sampled action or the mean.
+
+        "mean" feeds back the deterministic estimate, as the deployed filter does, so the windows the
+        networks learn on hold no exploration noise; the noise stays in the action the reward
+        scores. It changes which h the data visit, not the value of an action, only at γ = 0
+        (with γ > 0 an action's value includes its effect on the next window), so γ > 0 is refused.
+        """
+        mode = str(self.cfg.collector.get("feedback", "sample"))
+        if mode == "mean" and float(self.cfg.loss.gamma) != 0.0:
+            raise ValueError("collector.feedback=mean keeps each action's value only with loss.gamma=0")
+        return mode
+
     def _make_collector(self, remaining: int) -> Collector:
         c = self.cfg.collector
         frames_per_batch = int(c.env_batch) * int(c.steps_per_batch)
         return Collector(
             self.env,
-            self.filter.exploration_policy(),
+            self.filter.exploration_policy(self.feedback()),
             frames_per_batch=frames_per_batch,
             total_frames=max(remaining, frames_per_batch),
             auto_register_policy_transforms=False,
@@ -293,11 +307,9 @@ class DSACTTrainer(FilterTrainer):
     def set_learning_rates(self) -> float:
         """Actor and critic learning rates on a cosine from ``lr`` to ``optim.lr_final`` × lr over the budget.
 
-        A function of the frame count only, so a resumed run continues the same schedule. Returns the factor.
+        Returns the factor (``FilterTrainer.lr_factor``).
         """
-        final = float(self.cfg.optim.get("lr_final", 1.0))
-        progress = min(self.frames / int(self.cfg.collector.total_frames), 1.0)
-        factor = final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
+        factor = self.lr_factor()
         for optim, key in ((self.optim_actor, "lr_actor"), (self.optim_critic, "lr_critic")):
             for group in optim.param_groups:
                 group["lr"] = float(self.cfg.optim[key]) * factor

@@ -77,6 +77,8 @@ class SLFTrainer(FilterTrainer):
             while self.frames < total:
                 with timeit("collect"):
                     windows, targets = self._dataset()
+                for group in self.optim.param_groups:  # optim.lr_final: a cosine over the budget
+                    group["lr"] = float(self.cfg.optim.lr) * self.lr_factor()
                 with timeit("update"):
                     for _ in range(epochs):
                         order = torch.randperm(windows.shape[0])

@@ -91,9 +91,10 @@ def notes(cfg: DictConfig, p: DictConfig, filters: dict) -> list[str]:
         "RMSE in the paper's units (deg, deg/s, km/h, g): the SI errors times the system's report_scale.",
     ]
     out += [
-        f"{name}: overrides of recipes/veh14dof/config.yaml {list(row.overrides) or 'none'}."
+        f"{name}: overrides of recipes/veh14dof/config.yaml {[*row.overrides, *p.daof_overrides] or 'none'}."
         for name, row in cfg.v2_rows.items()
     ]
+    out.append(f"SLF: overrides of recipes/veh14dof/slf.yaml {list(p.slf_overrides) or 'none'}.")
     if _system_overrides(p):
         out.append(f"System overrides of this profile: {_system_overrides(p)} (not the spec's simulator settings).")
     return out
