@@ -235,7 +235,7 @@ def test_slf_learning_rate_follows_the_same_cosine(tmp_path):
     cfg = tiny_cfg("slf.yaml", tmp_path, **{"collector.total_frames": 1000, "optim.lr_final": 0.2})
     trainer = SLFTrainer(cfg)
     trainer.train()
-    # the lr of the last batch is set at the frames seen before it: 1 batch of 4 × (50 − ...) windows earlier
+    # the lr of the last batch is set at the frames seen before it, one (equal-sized) batch earlier
     last_batch = trainer.frames - trainer.frames // trainer.batches
     expected = 0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi * last_batch / 1000))
     assert trainer.optim.param_groups[0]["lr"] == pytest.approx(float(cfg.optim.lr) * expected)
