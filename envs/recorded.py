@@ -6,8 +6,11 @@ is expensive and batches badly: veh14dof costs ~70 ms per env step at batch 32 b
 ~15× more steps per second at batch 1024. The wrapper is a ``StochasticSystem`` that
 ``FilteringEnv`` runs unchanged:
 
-* ``reset_episode`` draws episodes of the bank (uniformly, with replacement, from the env's own
-  generator, so a resumed run draws the same ones) and ``advance`` returns their recorded steps;
+* ``reset_episode`` deals episodes of the bank without replacement: every episode is served once
+  before any is served again, in an order shuffled by the env's own generator (the undealt rest,
+  ``deck``, goes into training checkpoints, so a resumed run deals the same ones), and ``advance``
+  returns their recorded steps. Drawing with replacement would leave 37 % (1/e) of a bank unseen
+  after as many draws as it holds episodes;
 * ``simulate(runs, steps, seed)`` returns exactly the base system's ``simulate`` and, given a
   ``cache_dir``, memoises it on disk keyed by system, parameters, runs, steps and seed (validation
   and normaliser sets are the same for every training run; the bank itself is one such call);
@@ -33,7 +36,7 @@ from tensordict import TensorDict
 
 from envs.system import StochasticSystem, SystemWrapper
 
-__all__ = ["RecordedSystem", "cache_key", "cached_simulate"]
+__all__ = ["RecordedSystem", "cache_key", "cached_simulate", "find_recorded"]
 
 #: bump when the cached file format or the meaning of its key changes
 FORMAT = 1
@@ -116,6 +119,8 @@ class RecordedSystem(SystemWrapper):
         self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), int(seed)
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self._bank: TensorDict | None = None
+        #: bank episodes still to be dealt in the current pass (refilled with a fresh shuffle)
+        self.deck = torch.zeros(0, dtype=torch.long)
 
     @classmethod
     def from_mapping(cls, base: StochasticSystem, replay) -> RecordedSystem:
@@ -139,10 +144,18 @@ class RecordedSystem(SystemWrapper):
             self._bank = self.simulate(self.bank_runs, self.bank_steps + 1, self.bank_seed)
         return self._bank
 
+    def deal(self, runs: int, generator: torch.Generator) -> torch.Tensor:
+        """The next ``runs`` episode indices of the deck, reshuffling the whole bank when it runs out."""
+        while len(self.deck) < runs:
+            shuffled = torch.randperm(self.bank_runs, generator=generator, device=generator.device).cpu()
+            self.deck = torch.cat([self.deck, shuffled])
+        episode, self.deck = self.deck[:runs], self.deck[runs:]
+        return episode
+
     def reset_episode(self, runs: int, generator: torch.Generator, device="cpu") -> TensorDict:
-        """Draw ``runs`` bank episodes (with replacement) at t = 0."""
+        """Deal ``runs`` bank episodes (without replacement, see ``deal``) at t = 0."""
         bank = self.bank
-        episode = torch.randint(self.bank_runs, (runs,), generator=generator, device=generator.device).cpu()
+        episode = self.deal(runs, generator)
         return TensorDict(
             {
                 "episode": episode,
@@ -172,6 +185,13 @@ class RecordedSystem(SystemWrapper):
         return new_sim, obs
 
     # ----------------------------------------------------------------- helpers
+    def state_dict(self) -> dict:
+        """What a resumed run needs to deal the same episodes: the undealt rest of the deck."""
+        return {"deck": self.deck.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.deck = state["deck"].clone()
+
     def describe(self) -> dict:
         info = self.base.describe()
         info["replay"] = {
@@ -184,3 +204,12 @@ class RecordedSystem(SystemWrapper):
 
     def __repr__(self) -> str:
         return f"RecordedSystem({self.name}, runs={self.bank_runs}, steps={self.bank_steps}, seed={self.bank_seed})"
+
+
+def find_recorded(system: StochasticSystem) -> RecordedSystem | None:
+    """The ``RecordedSystem`` ``system`` is or wraps (``GappySystem(RecordedSystem(...))``), if any."""
+    while system is not None:
+        if isinstance(system, RecordedSystem):
+            return system
+        system = getattr(system, "base", None)
+    return None

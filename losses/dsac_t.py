@@ -144,6 +144,7 @@ class DSACTLoss(LossModule):
         sample_clip: float = 3.0,
         mean_weighting: str = "variance",
         reward_components: int = 1,
+        actor_samples: int = 1,
         delay_actor: bool = True,
         delay_qvalue: bool = True,
     ) -> None:
@@ -161,6 +162,9 @@ class DSACTLoss(LossModule):
         if mean_weighting not in ("variance", "uniform"):
             raise ValueError(f"mean_weighting must be 'variance' or 'uniform', got {mean_weighting!r}")
         self.mean_weighting = mean_weighting
+        if int(actor_samples) < 1:
+            raise ValueError(f"actor_samples must be >= 1, got {actor_samples}")
+        self.actor_samples = int(actor_samples)
         if int(reward_components) < 1:
             raise ValueError(f"reward_components must be >= 1, got {reward_components}")
         self.reward_components = int(reward_components)
@@ -307,13 +311,17 @@ class DSACTLoss(LossModule):
         out = out.unflatten(-1, (K, 2))
         return out[..., 0], F.softplus(out[..., 1])
 
-    def _sample_actor(self, tensordict: TensorDictBase, params) -> tuple[Tensor, Tensor]:
+    def _sample_actor(self, tensordict: TensorDictBase, params, samples: int = 1) -> tuple[Tensor, Tensor]:
+        """ã ~ π(·|s) and log π(ã|s); ``samples`` > 1 draws that many per state (dim 0)."""
         with (
             set_exploration_type(ExplorationType.RANDOM),
             params.to_module(self.actor_network, preserve_module_state=False),
         ):
             dist = self.actor_network.get_dist(tensordict)
-            return compute_rsample_log_prob(dist)
+            if samples == 1:
+                return compute_rsample_log_prob(dist)
+            action = dist.rsample((samples,))
+            return action, dist.log_prob(action)
 
     def compute_targets(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """y_q and y_z (spec, step 1), each of shape ``[*batch, K]``, without gradient.
@@ -406,9 +414,19 @@ class DSACTLoss(LossModule):
         return loss, metadata
 
     def actor_loss(self, tensordict: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
-        """L_π = mean[α log π(ã|s) − Σ_k min_i μ_ik(s, ã)] with the critics' parameters detached."""
-        action, log_prob = self._sample_actor(tensordict, self.actor_network_params)
+        """L_π = mean[α log π(ã|s) − Σ_k min_i μ_ik(s, ã)] with the critics' parameters detached.
+
+        The mean is over the batch and, with ``actor_samples`` = M > 1, over M actions drawn per
+        state: the same objective with 1/M of its sampling variance. The noise of one draw scales
+        with the policy's spread, which can far exceed the error the actor is learning to remove.
+        The critics see each state's input expanded (a view) beside its M actions.
+        """
+        M = self.actor_samples
+        action, log_prob = self._sample_actor(tensordict, self.actor_network_params, M)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        if M > 1:  # samples on a last batch dim: [*B, M]
+            td_q = td_q.unsqueeze(-1).expand(*td_q.batch_size, M)
+            action, log_prob = action.movedim(0, -2), log_prob.movedim(0, -1)
         td_q.set(self.tensor_keys.action, action)
         mu, _ = self._critic_mu_sigma(td_q, self._cached_detached_qvalue_params)
         min_mu = mu.min(0)[0].sum(-1)

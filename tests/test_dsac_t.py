@@ -247,6 +247,31 @@ def test_custom_action_key_and_gradient_routing():
     assert batch["td_error"].shape == (16,)
 
 
+def test_several_actor_samples_keep_the_gradient_and_cut_its_noise():
+    """actor_samples = M averages M draws per state: the same expected actor gradient, ~1/M of its
+    variance (over the sampling noise, batch and networks fixed)."""
+    torch.manual_seed(0)
+    one, many = make_loss(), make_loss(actor_samples=16)
+    many.load_state_dict(one.state_dict())
+    batch = make_batch(8)
+
+    def grads(loss, seed):
+        torch.manual_seed(seed)
+        loss.zero_grad()
+        value, meta = loss.actor_loss(batch)
+        value.backward()
+        return torch.cat([p.grad.flatten() for p in loss.actor_network_params.values(True, True)]), meta
+
+    g1 = torch.stack([grads(one, k)[0] for k in range(200)])
+    g16 = torch.stack([grads(many, k)[0] for k in range(200)])
+    assert grads(many, 0)[1]["log_prob"].shape == (8, 16)
+    assert (g16.var(0).sum() / g1.var(0).sum()).item() < 0.15  # 1/16 expected; measured 0.064
+    spread = (g1.var(0).sum() / 200).sqrt()  # standard error of g1's mean
+    assert (g1.mean(0) - g16.mean(0)).norm() < 4 * spread
+    with pytest.raises(ValueError, match="actor_samples"):
+        make_loss(actor_samples=0)
+
+
 def test_soft_update_moves_target_actor_and_target_critics():
     loss = make_loss()
     updater = SoftUpdate(loss, tau=0.005)

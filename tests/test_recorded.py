@@ -38,8 +38,9 @@ def test_env_replays_bank_episodes_step_by_step(linear):
         torch.testing.assert_close(td["control"][row], bank["control"][ep, :6], rtol=0, atol=0)
         torch.testing.assert_close(td["prev_control"][row, 0], bank["prev_control"][ep, 0], rtol=0, atol=0)
     assert td["next", "truncated"][:, -1].all() and not td["next", "truncated"][:, :-1].any()
-    # the env's generator picks the episodes: the same seed draws the same ones
-    again = FilteringEnv(rec, batch_size=3, max_steps=6, seed=11)
+    # the env's generator shuffles the deck: the same seed deals the same episodes (the deck is the
+    # system's state, so a second env gets a system of its own)
+    again = FilteringEnv(RecordedSystem(linear, runs=4, steps=6, seed=0), batch_size=3, max_steps=6, seed=11)
     again.reset()
     assert torch.equal(again._sim["episode"], episodes)
 
@@ -67,6 +68,41 @@ def test_partial_reset_draws_a_new_episode_for_the_reset_rows_only(linear):
     assert torch.equal(env._sim["t"][~mask], before["t"][~mask])
     assert torch.equal(env._sim["episode"][~mask], before["episode"][~mask])
     assert (env._sim["t"][mask] == 1).all()
+
+
+def test_episodes_are_dealt_without_replacement(linear):
+    """Every bank episode is served once per pass, in a fresh shuffle each pass, across resets."""
+    rec = RecordedSystem(linear, runs=10, steps=2, seed=0)
+    env = FilteringEnv(rec, batch_size=4, max_steps=2, seed=3)
+    dealt = []
+    for _ in range(5):  # 20 episodes: two passes over the bank, the second one straddling resets
+        env.reset()
+        dealt.append(env._sim["episode"].clone())
+    dealt = torch.cat(dealt)
+    assert sorted(dealt[:10].tolist()) == list(range(10)) and sorted(dealt[10:].tolist()) == list(range(10))
+    assert not torch.equal(dealt[:10], dealt[10:])
+
+
+def test_the_deck_round_trips_through_state_dict(linear):
+    """A system restored from ``state_dict`` deals what the original deals next."""
+    rec = RecordedSystem(linear, runs=7, steps=2, seed=0)
+    gen = torch.Generator().manual_seed(1)
+    rec.deal(3, gen)
+    saved, gen_state = rec.state_dict(), gen.get_state()
+    expected = rec.deal(9, gen)
+    other = RecordedSystem(linear, runs=7, steps=2, seed=0)
+    other.load_state_dict(saved)
+    gen.set_state(gen_state)
+    assert torch.equal(other.deal(9, gen), expected)
+
+
+def test_find_recorded_sees_through_wrappers(linear):
+    from envs.gaps import GappySystem
+    from envs.recorded import find_recorded
+
+    rec = RecordedSystem(linear, runs=3, steps=4, seed=0)
+    assert find_recorded(GappySystem(rec, 0.1, 0.0, 4)) is rec
+    assert find_recorded(rec) is rec and find_recorded(linear) is None
 
 
 def test_longer_episode_than_the_bank_is_an_error(linear):

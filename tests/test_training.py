@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
@@ -87,6 +87,26 @@ def test_dsac_resume_restores_everything_and_finishes(tmp_path, version):
     assert summary["frames"] == 800
     assert summary["updates"] > saved["training"]["updates"]
     assert (tmp_path / "best.pt").is_file() and (tmp_path / "learning_curve.png").is_file()
+
+
+def test_dsac_resume_deals_the_same_bank_episodes(tmp_path):
+    """With a replayed env, the checkpoint holds the undealt bank episodes and a resume restores them."""
+
+    def cfg(total_frames):
+        c = tiny_cfg("config.yaml", tmp_path, version="v2", **{"collector.total_frames": total_frames})
+        c.collector.episode_steps = 50
+        with open_dict(c):
+            c.overrides.replay = {"runs": 15, "steps": 50, "seed": 1}
+        return c
+
+    DSACTTrainer(cfg(400)).train()
+    saved = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    deck = saved["episode_bank"]["deck"]
+    assert 0 < len(deck) < 15 and len(set(deck.tolist())) == len(deck)  # a pass under way
+
+    second = DSACTTrainer(cfg(800))
+    second.resume(tmp_path / "checkpoint.pt")
+    assert torch.equal(second.state_dict()["episode_bank"]["deck"], deck)
 
 
 def test_resume_refuses_another_run(tmp_path):
@@ -362,6 +382,32 @@ def test_a_reward_quadratic_critic_has_the_rewards_own_curvature_and_trains(tmp_
             mus.append(trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)[0].squeeze(-1))
         second = mus[0] - 2 * mus[1] + mus[2]
         torch.testing.assert_close(second, -0.5 * (w * width.pow(2))[..., i].expand_as(second), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_actor_samples_share_one_critic_pass_per_window(tmp_path, version):
+    """``loss.actor_samples`` = M: the critics get M actions beside an expanded view of each window;
+    a quadratic critic then runs its MLP once per window, with the values it gives on copies."""
+    changes = {"collector.total_frames": 300, "network.critic_form": "reward_quadratic", "loss.actor_samples": 4}
+    cfg = tiny_cfg("config.yaml", tmp_path, version=version, **changes)
+    cfg.loss.gamma = 0.0
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    assert trainer.updates > 0 and trainer.loss.actor_samples == 4
+    f, loss = trainer.filter, trainer.loss
+    batch = trainer.buffer.sample()[:8].select(*loss.qvalue_network.in_keys, strict=False)
+    td = batch.unsqueeze(-1).expand(8, 4)
+    td.set(f.action_key, f.low + (f.high - f.low) * torch.rand(8, 4, trainer.system.state_dim))
+    seen = []
+    hook = loss.qvalue_network.module.mlp.register_forward_pre_hook(lambda _, args: seen.append(args[0].shape[:-1]))
+    try:
+        shared = loss._critic_mu_sigma(td, loss.qvalue_network_params)
+        copied = loss._critic_mu_sigma(td.apply(lambda x: x.contiguous()), loss.qvalue_network_params)
+    finally:
+        hook.remove()
+    assert seen == [torch.Size([8, 1]), torch.Size([8, 4])]
+    for a, b in zip(shared, copied):
+        torch.testing.assert_close(a, b)
 
 
 def test_a_reward_quadratic_critic_needs_gamma_zero(tmp_path):

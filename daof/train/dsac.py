@@ -34,6 +34,7 @@ from daof.train.schedules import reward_weight_schedule, ukf_schedule
 from envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
 from envs.gaps import GappySystem
 from envs.history import FRAME_KEY, with_window
+from envs.recorded import find_recorded
 from losses import DSACTLoss
 
 __all__ = ["DSACTTrainer"]
@@ -116,6 +117,7 @@ class DSACTTrainer(FilterTrainer):
             alpha_init=float(cfg.loss.alpha_init),
             mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
             reward_components=terms,
+            actor_samples=int(cfg.loss.get("actor_samples", 1)),
         )
         self.loss.set_keys(action=self.filter.action_key)
         if per_state:
@@ -247,13 +249,17 @@ class DSACTTrainer(FilterTrainer):
 
     # ----------------------------------------------------------------- checkpoint parts
     def extra_state(self) -> dict:
-        return {
+        state = {
             "loss": self.loss.state_dict(),
             "optim_critic": self.optim_critic.state_dict(),
             "optim_actor": self.optim_actor.state_dict(),
             "optim_alpha": self.optim_alpha.state_dict(),
             "buffer": self.buffer.state_dict(),
         }
+        bank = find_recorded(self.base_env.system)
+        if bank is not None:  # the episodes a replayed env has yet to deal
+            state["episode_bank"] = bank.state_dict()
+        return state
 
     def load_extra_state(self, blob: dict) -> None:
         self.loss.load_state_dict(blob["loss"])
@@ -261,6 +267,9 @@ class DSACTTrainer(FilterTrainer):
         self.optim_actor.load_state_dict(blob["optim_actor"])
         self.optim_alpha.load_state_dict(blob["optim_alpha"])
         self.buffer.load_state_dict(blob["buffer"])
+        bank = find_recorded(self.base_env.system)
+        if bank is not None and "episode_bank" in blob:
+            bank.load_state_dict(blob["episode_bank"])
 
     def generators(self) -> dict[str, torch.Generator]:
         return {"env": self.base_env.rng}

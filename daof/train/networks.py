@@ -98,10 +98,15 @@ class FilterCritic(nn.Module):
 
     def forward(self, window: torch.Tensor, action: torch.Tensor, step=None) -> torch.Tensor:
         actor = self._actor[0]
-        h = actor.policy.features(window, step)
         a = (action - (actor.high + actor.low) / 2) / ((actor.high - actor.low) / 2)
         if self.form == "mlp":
-            return self.mlp(torch.cat([h, a], -1))
+            return self.mlp(torch.cat([actor.policy.features(window, step), a], -1))
+        if window.ndim > 2 and window.shape[-2] > 1 and window.stride(-2) == 0:
+            # one window expanded beside several actions (DSACTLoss's actor_samples): the MLP of a
+            # quadratic form reads h alone, so it runs once per window and broadcasts
+            window = window[..., :1, :]
+            step = step[..., :1, :] if isinstance(step, torch.Tensor) and step.ndim == window.ndim else step
+        h = actor.policy.features(window, step)
         K, n = self.reward_terms, a.shape[-1]
         if self.form == "quadratic":
             value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
@@ -112,7 +117,8 @@ class FilterCritic(nn.Module):
         penalty = curvature * (a - best).pow(2)
         if K == 1:
             penalty = penalty.sum(-1, keepdim=True)
-        return torch.stack([value - penalty, raw_scale], -1).flatten(-2)
+        mean = value - penalty
+        return torch.stack([mean, raw_scale.expand_as(mean)], -1).flatten(-2)
 
     def reward_curvature(self, step=None) -> torch.Tensor:
         """p_t = W_t ⊙ w_t², the reward's curvature in the critic's action units (``reward_quadratic``)."""
