@@ -38,13 +38,11 @@ def critics_best_actions(trainer: DSACTTrainer, windows: torch.Tensor, steps: to
     critic = loss.qvalue_network.module
     if critic.form == "mlp":
         raise SystemExit("the run's critics are MLPs of (h, a): they have no explicit best action")
-    n = trainer.system.state_dim
     out = []
     for params in loss.qvalue_network_params.unbind(0):
         with params.to_module(loss.qvalue_network), torch.inference_mode():
-            h = actor.policy.features(windows.flatten(0, 1), steps.flatten()[:, None])
-            best = critic.mlp(h)[:, 2 * critic.reward_terms : 2 * critic.reward_terms + n]
-        out.append((best * (actor.high - actor.low) / 2 + (actor.high + actor.low) / 2).unflatten(0, windows.shape[:2]))
+            best = critic.heads(windows.flatten(0, 1), steps.flatten()[:, None])[2]
+        out.append(torch.addcmul(*actor.squash_affine(), best).unflatten(0, windows.shape[:2]))
     return out
 
 

@@ -462,13 +462,13 @@ class LearnedFilter(nn.Module, Filter):
             estimate = estimate + reference
         return torch.clamp(estimate, self.state_low, self.state_high)
 
-    def _squash_affine(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def squash_affine(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(mid, half) of the actor's bounds: a = mid + half · tanh(u)."""
         return (self.high + self.low) / 2, (self.high - self.low) / 2
 
     def squash(self, loc: torch.Tensor) -> torch.Tensor:
         """The deterministic action of a pre-squash loc: mid + half · tanh(loc) on the actor's bounds."""
-        return torch.addcmul(*self._squash_affine(), torch.tanh(loc))
+        return torch.addcmul(*self.squash_affine(), torch.tanh(loc))
 
     def exploration_policy(self, feedback: str = "sample") -> TensorDictSequential:
         """What a collector runs: sample from π and, for a filter that acts by updates, add the prediction.
@@ -533,7 +533,7 @@ class LearnedFilter(nn.Module, Filter):
         layers = [(w0, first.bias - w0 @ policy.input_loc, w_nu, w_rho)]
         layers += [(m.weight, m.bias) for m in linears[1:-1]]
         # a = mid + half · tanh(u) maps onto the action's bounds; DAOF-v1's are ±1 (a = tanh(u))
-        squash = None if self.acts_by_update else self._squash_affine()
+        squash = None if self.acts_by_update else self.squash_affine()
         return layers + [(last.weight[:n], last.bias[:n], squash)]
 
     def _fast_estimate(self, layers, window, prev_estimate=None, prev_control=None, step=None) -> torch.Tensor:

@@ -98,7 +98,8 @@ class FilterCritic(nn.Module):
 
     def forward(self, window: torch.Tensor, action: torch.Tensor, step=None) -> torch.Tensor:
         actor = self._actor[0]
-        a = (action - (actor.high + actor.low) / 2) / ((actor.high - actor.low) / 2)
+        mid, half = actor.squash_affine()
+        a = (action - mid) / half
         if self.form == "mlp":
             return self.mlp(torch.cat([actor.policy.features(window, step), a], -1))
         if window.ndim > 2 and window.shape[-2] > 1 and window.stride(-2) == 0:
@@ -106,24 +107,29 @@ class FilterCritic(nn.Module):
             # quadratic form reads h alone, so it runs once per window and broadcasts
             window = window[..., :1, :]
             step = step[..., :1, :] if isinstance(step, torch.Tensor) and step.ndim == window.ndim else step
-        h = actor.policy.features(window, step)
-        K, n = self.reward_terms, a.shape[-1]
-        if self.form == "quadratic":
-            value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
-            curvature = nn.functional.softplus(curvature)
-        else:
-            value, raw_scale, best = self.mlp(h).split([K, K, n], -1)
-            curvature = self.reward_curvature(step)
+        value, raw_scale, best, curvature = self.heads(window, step)
         penalty = curvature * (a - best).pow(2)
-        if K == 1:
+        if self.reward_terms == 1:
             penalty = penalty.sum(-1, keepdim=True)
         mean = value - penalty
         return torch.stack([mean, raw_scale.expand_as(mean)], -1).flatten(-2)
 
+    def heads(self, window: torch.Tensor, step=None) -> tuple[torch.Tensor, ...]:
+        """A quadratic form's (V, raw scale, best action m, curvature p) per window, m in [−1, 1] action units."""
+        if self.form == "mlp":
+            raise ValueError("an MLP critic of (h, a) has no separate value, best action or curvature")
+        h = self._actor[0].policy.features(window, step)
+        K, n = self.reward_terms, self._actor[0].system.state_dim
+        if self.form == "quadratic":
+            value, raw_scale, best, curvature = self.mlp(h).split([K, K, n, n], -1)
+            return value, raw_scale, best, nn.functional.softplus(curvature)
+        value, raw_scale, best = self.mlp(h).split([K, K, n], -1)
+        return value, raw_scale, best, self.reward_curvature(step)
+
     def reward_curvature(self, step=None) -> torch.Tensor:
         """p_t = W_t ⊙ w_t², the reward's curvature in the critic's action units (``reward_quadratic``)."""
         actor = self._actor[0]
-        width = (actor.high - actor.low) / 2
+        width = actor.squash_affine()[1]
         if actor.acts_by_update:
             width = width * actor.bound_at(step)
         weights = self.reward_weights if self.reward_weights.ndim == 1 else schedule_row(self.reward_weights, step)
