@@ -8,7 +8,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from hydra.conf import HydraConf
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
 
+from daof.evaluate.experiment import command_line
 from daof.evaluate.metrics import count_diverged, paired_rmse_ratio, per_run_rmse, pooled_rmse
 from daof.evaluate.study import FilterResult, _add_oracle_metrics
 
@@ -463,3 +467,22 @@ def test_learning_curve_references_are_the_validation_set_numbers_of_the_run(tmp
     (tmp_path / "v1" / "summary.json").write_text(json.dumps({"validation_references": {"UKF": [0.0105, 0.0258]}}))
     assert validation_references(filters) == {"UKF": [0.0105, 0.0258]}
     assert validation_references(filters, ["slf"]) == {}
+
+
+def test_a_reports_command_line_keeps_every_override_given():
+    """The command written into a report reproduces it: pinned arguments first, then every other
+    override of the Hydra command line (quoted for a shell), a dropped key left out."""
+    given = ["profile=paper", "profiles.paper.daof_frames=3200000", "scenarios=[a,b]", "+x=1"]
+    hydra = OmegaConf.structured(HydraConf)
+    hydra.overrides.task = given
+    HydraConfig.instance().set_config(OmegaConf.create({"hydra": hydra}))
+    try:
+        assert command_line("s.py", "profile=paper", "scenario=a", drop=["scenarios"]) == (
+            "python s.py profile=paper scenario=a profiles.paper.daof_frames=3200000 +x=1"
+        )
+        assert command_line("s.py", "profile=paper") == (
+            "python s.py profile=paper profiles.paper.daof_frames=3200000 'scenarios=[a,b]' +x=1"
+        )
+    finally:
+        HydraConfig.instance().cfg = None
+    assert command_line("s.py", "profile=quick") == "python s.py profile=quick"  # outside Hydra

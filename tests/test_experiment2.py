@@ -113,6 +113,8 @@ def test_experiment2_tiny_profile_end_to_end(tmp_path):
     first = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
     _check_report(tmp_path / "report", runs=3)
+    command = json.loads((tmp_path / "report" / "results.json").read_text())["command"]
+    assert command == " ".join(["python recipes/veh14dof/experiment.py", *cmd[2:]])  # every override, as given
     second = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert second.returncode == 0, second.stderr[-3000:]
     assert second.stdout.count("finished earlier, reusing") == len(ROWS)

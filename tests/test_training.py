@@ -9,8 +9,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
+from daof.filters.learned import load_filter
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
+from daof.train.validation import rmse_per_state
 from envs.filtering_env import FEEDBACK_KEY
 from envs.gaps import training_dropout_mask
 
@@ -301,6 +303,31 @@ def test_the_untrained_network_is_never_the_best_checkpoint(tmp_path):
     assert trainer.history[0]["updates"] == 0
     assert summary["best"]["record"]["updates"] > 0
     assert torch.load(tmp_path / "best.pt", weights_only=False)["extra"]["updates"] > 0
+
+
+def test_validation_actor_target_validates_and_saves_the_polyak_averaged_actor(tmp_path):
+    """``validation.actor=target``: the weights validated and written to best.pt / final.pt are
+    DSAC-T's target actor; the online actor the loss trains is left as it was."""
+    cfg = tiny_cfg(
+        "config.yaml", tmp_path, version="v2", **{"collector.total_frames": 400, "validation.actor": "target"}
+    )
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    online = {k: v.clone() for k, v in trainer.filter.state_dict().items()}
+    saved = load_filter(tmp_path / "final.pt", trainer.system)
+    with trainer.deployed_weights():
+        target = {k: v.clone() for k, v in trainer.filter.state_dict().items()}
+    assert_same_state(trainer.filter.state_dict(), online)  # swapped back out
+    assert_same_state(saved.state_dict(), target)
+    assert any(not torch.equal(online[k], target[k]) for k in online)  # τ < 1: the two differ after updates
+    record = trainer.validate()
+    rmse = rmse_per_state(saved.run(trainer.val_data), trainer.val_data["state"])
+    torch.testing.assert_close(torch.tensor([record[f"rmse_{n}"] for n in trainer.system.state_names]), rmse)
+
+
+def test_an_unknown_validation_actor_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="validation.actor"):
+        DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **{"validation.actor": "best"}))
 
 
 def test_a_critic_per_state_learns_on_the_reward_terms(tmp_path):

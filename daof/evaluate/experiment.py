@@ -12,10 +12,12 @@ from __future__ import annotations
 import hashlib
 import inspect
 import json
+import shlex
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig
 
 from daof.evaluate.jobs import TrainingJob, run_jobs
@@ -28,6 +30,7 @@ from envs import make_system
 __all__ = [
     "checkpoint_fingerprint",
     "classical_filters",
+    "command_line",
     "learning_curves",
     "load_trained",
     "run_trained_study",
@@ -37,6 +40,15 @@ __all__ = [
     "training_costs",
     "validation_references",
 ]
+
+
+def command_line(script: str, *pinned: str, drop: Sequence[str] = ()) -> str:
+    """The command that reproduces a report: ``script``, the ``pinned`` key=value arguments, then
+    every other override given on the Hydra command line (those of keys in ``drop`` left out)."""
+    given = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    skip = {*drop, *(arg.split("=", 1)[0] for arg in pinned)}
+    rest = [arg for arg in given if arg.split("=", 1)[0].lstrip("+~") not in skip]
+    return " ".join(["python", script, *map(shlex.quote, [*pinned, *rest])])
 
 
 def select_profile(cfg: DictConfig) -> DictConfig:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
 import torch
@@ -154,10 +155,15 @@ class FilterTrainer:
         atomic_save(self.state_dict(), path)
         return path
 
+    def deployed_weights(self) -> AbstractContextManager:
+        """Inside it the filter holds the weights that are validated and saved (its own here)."""
+        return nullcontext()
+
     def save_filter(self, name: str) -> Path:
         path = self.out / name
         meta = {"frames": self.frames, "updates": self.updates, "wall_s": self.wall, "history": self.history}
-        self.filter.save(path, extra=meta)
+        with self.deployed_weights():
+            self.filter.save(path, extra=meta)
         return path
 
     # ----------------------------------------------------------------- validation and logging
@@ -166,7 +172,8 @@ class FilterTrainer:
         """Deterministic closed-loop RMSE per state on the fixed validation set."""
         was_training = self.filter.training
         self.filter.eval()
-        est = self.filter.run(self.val_data)
+        with self.deployed_weights():
+            est = self.filter.run(self.val_data)
         self.filter.train(was_training)
         rmse = rmse_per_state(est, self.val_data["state"])
         record = {"frames": self.frames, "updates": self.updates, "wall_s": round(self.wall, 2)}

@@ -17,6 +17,8 @@ interrupted batch are not collected again).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 
 import torch
 from omegaconf import DictConfig
@@ -64,6 +66,7 @@ class DSACTTrainer(FilterTrainer):
         self._make_loss()
         self._make_data()
         self.feedback()  # refuse an impossible collector.feedback before any work
+        self.deployed_weights()  # and an unknown validation.actor
 
     # ----------------------------------------------------------------- factories
     def _make_schedules(self) -> None:
@@ -246,6 +249,22 @@ class DSACTTrainer(FilterTrainer):
             total_frames=max(remaining, frames_per_batch),
             auto_register_policy_transforms=False,
         )
+
+    def deployed_weights(self) -> AbstractContextManager:
+        """``validation.actor``: the filter validated and saved is the online actor (``online``)
+        or DSAC-T's Polyak-averaged target actor (``target``), swapped in for the duration."""
+        which = str(self.cfg.validation.get("actor", "online"))
+        if which == "online":
+            return nullcontext()
+        if which == "target":
+            return self._target_actor_swapped_in()
+        raise ValueError(f"validation.actor must be 'online' or 'target', got {which!r}")
+
+    @contextmanager
+    def _target_actor_swapped_in(self) -> Iterator[None]:
+        # to_module swaps on the call, not on entering: called here, inside the with-block
+        with self.loss.target_actor_network_params.to_module(self.loss.actor_network):
+            yield
 
     # ----------------------------------------------------------------- checkpoint parts
     def extra_state(self) -> dict:

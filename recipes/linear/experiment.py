@@ -20,6 +20,7 @@ import hydra
 from omegaconf import DictConfig
 
 from daof.evaluate.experiment import (
+    command_line,
     learning_curves,
     run_trained_study,
     select_profile,
@@ -157,7 +158,10 @@ def main(cfg: DictConfig) -> None:
         training=training_costs(jobs),
         notes=notes(cfg, p, study),
         requirements=[check],
-        meta={"wall_time_s": round(wall, 1), "command": f"python recipes/linear/experiment.py profile={cfg.profile}"},
+        meta={
+            "wall_time_s": round(wall, 1),
+            "command": command_line("recipes/linear/experiment.py", f"profile={cfg.profile}"),
+        },
     )
     verdict = "met" if check["met"] else "NOT met"
     print(f"{check['requirement']}: {verdict} ({check['detail']})")

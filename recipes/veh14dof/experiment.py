@@ -20,6 +20,7 @@ import hydra
 from omegaconf import DictConfig
 
 from daof.evaluate.experiment import (
+    command_line,
     learning_curves,
     run_trained_study,
     select_profile,
@@ -126,7 +127,10 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         curve_references=validation_references(filters),
         training=training_costs(jobs),
         notes=notes(cfg, p, filters),
-        meta={"wall_time_s": round(wall, 1), "command": f"python recipes/veh14dof/experiment.py profile={cfg.profile}"},
+        meta={
+            "wall_time_s": round(wall, 1),
+            "command": command_line("recipes/veh14dof/experiment.py", f"profile={cfg.profile}"),
+        },
         per_state=True,
     )
 

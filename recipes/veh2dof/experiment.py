@@ -27,6 +27,7 @@ from omegaconf import DictConfig, open_dict
 from daof.evaluate import Dropout, run_study
 from daof.evaluate.experiment import (
     classical_filters,
+    command_line,
     learning_curves,
     run_trained_study,
     select_profile,
@@ -41,6 +42,7 @@ from daof.filters import ParticleFilter
 from envs import make_system
 
 HERE = Path(__file__).resolve().parent
+SCRIPT = "recipes/veh2dof/experiment.py"
 WINDOW = 20  # N of SLF, DAOF-v2 and the main DAOF-v1
 
 
@@ -177,8 +179,9 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
                 "last value (docs/missing_data.md)."
             ],
             meta={
-                "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario} "
-                "dropout.enabled=true"
+                "command": command_line(
+                    SCRIPT, f"profile={cfg.profile}", f"scenario={scenario}", "dropout.enabled=true", drop=["scenarios"]
+                )
             },
         )
 
@@ -201,7 +204,7 @@ def study_and_report(cfg: DictConfig, p: DictConfig, jobs: dict[str, TrainingJob
         paired_with="UKF",
         meta={
             "wall_time_s": round(wall, 1),
-            "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} scenario={scenario}",
+            "command": command_line(SCRIPT, f"profile={cfg.profile}", f"scenario={scenario}", drop=["scenarios"]),
         },
     )
     return study, report
@@ -253,8 +256,7 @@ def main(cfg: DictConfig) -> None:
             ],
             meta={
                 "wall_time_s": round(wall, 1),
-                "command": f"python recipes/veh2dof/experiment.py profile={cfg.profile} "
-                f"'scenarios=[{','.join(scenarios)}]'",
+                "command": command_line(SCRIPT, f"profile={cfg.profile}", f"scenarios=[{','.join(scenarios)}]"),
             },
         )
         print(f"combined report: {combined}  ({wall / 60:.1f} min)")
