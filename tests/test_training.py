@@ -437,6 +437,37 @@ def test_actor_samples_share_one_critic_pass_per_window(tmp_path, version):
         torch.testing.assert_close(a, b)
 
 
+def test_a_reward_scaled_critic_spreads_as_its_quadratic_reward_and_trains(tmp_path):
+    """``network.critic_scale=reward``: σ_i² = s_i² + 2√2·p_i·s_i·(a_i − m_i)², the spread of the reward
+    term −p_i(a_i − a*_i)² when a*_i | h is Gaussian around m_i, with s_i = softplus(raw_i) at a = m;
+    refused without a critic per state, and a short run at a small ε keeps σ finite and positive."""
+    changes = {"collector.total_frames": 300, "network.critic_form": "reward_quadratic", "loss.critic_per_state": True}
+    changes |= {"network.critic_scale": "reward", "loss.epsilon": 1e-10, "version": "v2"}
+    cfg = tiny_cfg("config.yaml", tmp_path / "a", **changes)
+    cfg.loss.gamma = 0.0
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    assert trainer.updates > 0 and trainer.loss.epsilon == 1e-10
+    f, loss = trainer.filter, trainer.loss
+    critic = loss.qvalue_network.module
+    batch = trainer.buffer.sample()[:8]
+    with loss.qvalue_network_params[0].to_module(loss.qvalue_network):
+        _, raw, best, curvature = critic.heads(batch["history"], batch.get("step", None))
+    mid, half = f.squash_affine()
+    spread = torch.nn.functional.softplus(raw)
+    for offset in (0.0, 0.3, -0.7):
+        td = batch.clone()
+        td[f.action_key] = mid + (best + offset) * half
+        _, sigma = loss._critic_mu_sigma(td, loss.qvalue_network_params)
+        expected = (spread.pow(2) + 8**0.5 * spread * curvature * offset**2).sqrt()
+        torch.testing.assert_close(sigma[0], expected, rtol=1e-4, atol=1e-7)
+    assert bool(torch.isfinite(loss.sigma_bar).all()) and bool((loss.sigma_bar > 0).all())
+    cfg = tiny_cfg("config.yaml", tmp_path / "b", **(changes | {"loss.critic_per_state": False}))
+    cfg.loss.gamma = 0.0
+    with pytest.raises(ValueError, match="needs a quadratic critic form with a critic per state"):
+        DSACTTrainer(cfg)
+
+
 def test_a_reward_quadratic_critic_needs_gamma_zero(tmp_path):
     cfg = tiny_cfg("config.yaml", tmp_path, **{"network.critic_form": "reward_quadratic", "loss.gamma": 0.5})
     with pytest.raises(ValueError, match="exact only with loss.gamma=0"):

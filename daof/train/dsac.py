@@ -105,8 +105,9 @@ class DSACTTrainer(FilterTrainer):
             if float(cfg.loss.gamma) != 0.0:
                 raise ValueError("network.critic_form=reward_quadratic is exact only with loss.gamma=0")
             weights = self.reward_weights if self.reward_weights is not None else default_reward_weights(self.system)
+        scale = str(cfg.network.get("critic_scale", "window"))
         critics = [
-            make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form, weights)
+            make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form, weights, scale)
             for _ in range(2 if init == "own" else 1)
         ]
         for critic in critics:
@@ -119,6 +120,7 @@ class DSACTTrainer(FilterTrainer):
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
             mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
+            epsilon=float(cfg.loss.get("epsilon", 0.1)),
             reward_components=terms,
             actor_samples=int(cfg.loss.get("actor_samples", 1)),
         )

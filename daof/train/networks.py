@@ -9,11 +9,14 @@ from torchrl.modules import MLP
 
 from daof.filters.learned import LearnedFilter, schedule_row
 
-__all__ = ["CRITIC_FORMS", "WINDOW_INITS", "FilterCritic", "make_critic", "start_on_newest_frame"]
+__all__ = ["CRITIC_FORMS", "CRITIC_SCALES", "WINDOW_INITS", "FilterCritic", "make_critic", "start_on_newest_frame"]
 
 #: "mlp": Q from an MLP on (h, a) | "quadratic": μ = V(h) − Σ_i p_i(h)(a_i − m_i(h))² (NAF-style) |
 #: "reward_quadratic": the same with p_i the reward's own curvature in the action (exact at γ = 0)
 CRITIC_FORMS = ("mlp", "quadratic", "reward_quadratic")
+#: the value distribution's std σ: "window": from h alone | "reward": a quadratic reward's own spread,
+#: growing with the action's distance from m(h) (``FilterCritic``, quadratic forms with a critic per state)
+CRITIC_SCALES = ("window", "reward")
 #: first-layer init over the window: "uniform" (PyTorch's default on every input) | "newest"
 #: (``start_on_newest_frame``)
 WINDOW_INITS = ("uniform", "newest")
@@ -57,6 +60,14 @@ class FilterCritic(nn.Module):
     that of the regression m(h), not that of a surface fitted over the whole action range
     (docs/experiment2.md, session 18). ``reward_weights`` is W ([n], or a [S, n] schedule read
     at the step the actor reads; without the step, its settled row).
+
+    ``scale="reward"`` (quadratic forms, a critic per state) gives σ the spread a quadratic reward
+    term r = −p(a − a*)² has at γ = 0 when a* | h has mean m and variance v (Gaussian):
+    Var r = p²(4(a − m)²v + 2v²), i.e. σ² = s² + 2√2·p·s·(a − m)² with s(h) = softplus(raw) the
+    spread at a = m (m and p detached: they are fitted by the mean). DSAC-T weights each sample's
+    mean term by 1/(σ² + ε), so with ε small against σ² the fit of m(h) is the efficient weighted
+    least squares: far-explored actions, whose rewards are the noisiest, count less
+    (``benchmarks/reward_vs_label.py``). ``scale="window"`` is σ = softplus(raw) from h alone.
     """
 
     def __init__(
@@ -67,15 +78,21 @@ class FilterCritic(nn.Module):
         reward_terms: int = 1,
         form: str = "mlp",
         reward_weights: torch.Tensor | None = None,
+        scale: str = "window",
     ):
         super().__init__()
         if form not in CRITIC_FORMS:
             raise ValueError(f"critic form must be one of {CRITIC_FORMS}, got {form!r}")
+        if scale not in CRITIC_SCALES:
+            raise ValueError(f"critic scale must be one of {CRITIC_SCALES}, got {scale!r}")
         if (form == "reward_quadratic") != (reward_weights is not None):
             raise ValueError("reward_weights are needed by, and only by, the 'reward_quadratic' critic form")
         n = actor.system.state_dim
         if reward_terms not in (1, n):
             raise ValueError(f"reward_terms must be 1 or the state dim {n}, got {reward_terms}")
+        if scale == "reward" and (form == "mlp" or reward_terms != n):
+            raise ValueError("critic scale 'reward' needs a quadratic critic form with a critic per state")
+        self.scale = scale
         self._actor = [actor]  # a reference, not a submodule: its weights are not the critic's
         self.form = form
         self.reward_terms = reward_terms
@@ -112,6 +129,10 @@ class FilterCritic(nn.Module):
         if self.reward_terms == 1:
             penalty = penalty.sum(-1, keepdim=True)
         mean = value - penalty
+        if self.scale == "reward":
+            spread = nn.functional.softplus(raw_scale)
+            sigma = (spread.pow(2) + 8**0.5 * spread * (curvature * (a - best).pow(2)).detach()).sqrt()
+            raw_scale = sigma + torch.log(-torch.expm1(-sigma))  # softplus⁻¹: the loss reads σ = softplus(raw)
         return torch.stack([mean, raw_scale.expand_as(mean)], -1).flatten(-2)
 
     def heads(self, window: torch.Tensor, step=None) -> tuple[torch.Tensor, ...]:
@@ -143,8 +164,9 @@ def make_critic(
     reward_terms: int = 1,
     form: str = "mlp",
     reward_weights: torch.Tensor | None = None,
+    scale: str = "window",
 ) -> TensorDictModule:
     """Critic reading (h_t^N, t where the actor reads it, the action key), writing ``state_action_value`` [.., 2K]."""
-    net = FilterCritic(actor, num_cells, depth, reward_terms, form, reward_weights)
+    net = FilterCritic(actor, num_cells, depth, reward_terms, form, reward_weights, scale)
     in_keys = dict(zip(["window", "step"], actor.policy_in_keys)) | {"action": actor.action_key}
     return TensorDictModule(net, in_keys=in_keys, out_keys=["state_action_value"])
