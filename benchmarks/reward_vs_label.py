@@ -29,7 +29,7 @@ import torch
 
 
 def samples_ratios(spread: float, bias: float = 0.1, draws: int = 4_000_000, seed: int = 0) -> tuple[float, float]:
-    """Samples needed relative to the label (unweighted, reward-spread weighted), exploration std ``spread`` in units of s."""
+    """Samples needed relative to the label (unweighted, reward-spread weighted); ``spread``: exploration std / s."""
     gen = torch.Generator().manual_seed(seed)
     s, c = 1.0, 1.0
     x = torch.randn(draws, generator=gen, dtype=torch.float64) * s
@@ -52,7 +52,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--spreads", type=float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0, 16.0])
     args = parser.parse_args()
-    print("| exploration std / irreducible error | samples needed / label's: unweighted | weighted by the reward's spread |")
+    print("| exploration std / irreducible error | samples needed / label's: unweighted | reward-spread weighted |")
     print("|---|---|---|")
     for spread in args.spreads:
         unweighted, weighted = samples_ratios(spread)
