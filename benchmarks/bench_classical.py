@@ -19,10 +19,10 @@ import platform
 import statistics
 import time
 
+import daof.envs as envs
 import numpy as np
 import torch
 
-import envs
 from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
 from daof.filters.kalman import make_model
 

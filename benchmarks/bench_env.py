@@ -24,8 +24,7 @@ import platform
 import time
 
 import torch
-
-from envs import make_env
+from daof.envs import make_env
 
 
 def best_rate(fn, transitions: int, repeats: int) -> float:

@@ -16,11 +16,11 @@ import os
 import platform
 
 import torch
+from daof.envs import make_system
 
 from daof.evaluate.timing import cost_per_estimate
 from daof.filters import EKF, UKF
 from daof.filters.learned import FilterConfig, LearnedFilter, load_filter
-from envs import make_system
 
 
 def main() -> None:

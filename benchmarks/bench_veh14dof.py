@@ -16,9 +16,8 @@ import os
 import platform
 import time
 
+import daof.envs as envs
 import torch
-
-import envs
 
 
 def time_steps(system, runs: int, steps: int, warmup: int = 2) -> float:

@@ -13,10 +13,10 @@ from __future__ import annotations
 import argparse
 
 import torch
+from daof.envs import make_system
 
 from daof.filters import UKF
 from daof.filters.learned import load_filter
-from envs import make_system
 
 
 def main() -> None:

@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 
 import torch
+from daof.envs import make_system
+from daof.envs.vehicle2dof import Vehicle2DOF
 
 from daof.evaluate.metrics import per_run_rmse, pooled_rmse
 from daof.filters import JointParameterPF, ParticleFilter
-from envs import make_system
-from envs.vehicle2dof import Vehicle2DOF
 
 
 class KnownParameterVeh2DOF(Vehicle2DOF):

@@ -17,13 +17,13 @@ import argparse
 from pathlib import Path
 
 import torch
+from daof.envs import make_system
 
 from daof.evaluate import Dropout
 from daof.evaluate.dropout import apply_dropout
 from daof.evaluate.metrics import pooled_rmse
 from daof.filters import UKF
 from daof.filters.learned import MISSING_FILLS, load_filter
-from envs import make_system
 
 
 def patterns(system, data) -> dict:

@@ -14,11 +14,11 @@ from __future__ import annotations
 import argparse
 
 import torch
+from daof.envs import make_system
 
 from daof.filters import UKF, KalmanFilter
 from daof.filters.learned import FilterConfig, LearnedFilter
 from daof.train.schedules import ukf_schedule
-from envs import make_system
 
 
 def rmse(estimate: torch.Tensor, truth: torch.Tensor, steps: slice) -> list[float]:

@@ -3,13 +3,13 @@
 The filtering MDP (DESIGN.md): at step t the agent sees the measurement y_t, the known controls
 u_t and u_{t−1}, and its own previous estimate x̂_{t−1}; its action is the estimate x̂_t; the
 reward is r_t = −‖x_t − x̂_t‖²_W. After a reset the previous estimate is the prior mean x̂_0 and
-the first measurement is y_1 (see ``envs.system`` for the time convention).
+the first measurement is y_1 (see ``daof.envs.system`` for the time convention).
 
 Keys. Observations: ``measurement``, ``control`` (u_t), ``prev_control`` (u_{t−1}, what the
 DAOF-v1 predictor needs), ``prev_estimate`` (x̂_{t−1}) and ``step`` (t, the number of measurements
 since the reset: 1 right after it; DAOF-v1 sizes its update bound by it). The true state x_t travels under
 ``true_state`` for logging and supervised training only: no filter module in this project reads
-it, and a filter that did would be cheating. A system with gaps (``envs.gaps.GappySystem``) adds
+it, and a filter that did would be cheating. A system with gaps (``daof.envs.gaps.GappySystem``) adds
 ``missing``, the 0/1 flags of the channels whose measurement is a held value.
 
 Fed-back estimate. The next step's ``prev_estimate`` is the action, unless the policy also
@@ -25,12 +25,11 @@ and both states count equally relative to what is achievable.
 from __future__ import annotations
 
 import torch
+from daof.envs.gaps import MISSING_KEY
+from daof.envs.system import StochasticSystem
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
-
-from envs.gaps import MISSING_KEY
-from envs.system import StochasticSystem
 
 __all__ = ["FEEDBACK_KEY", "FilteringEnv", "default_reward_weights", "make_env"]
 
@@ -208,11 +207,11 @@ def make_env(
 ):
     """The filtering env of system ``name`` with its history window (a ``TransformedEnv``).
 
-    ``padding`` fills the window in front of the first frame (``envs.history``); ``overrides`` go
+    ``padding`` fills the window in front of the first frame (``daof.envs.history``); ``overrides`` go
     to ``make_system`` (system parameters).
     """
-    from envs.history import with_window
-    from envs.registry import make_system
+    from daof.envs.history import with_window
+    from daof.envs.registry import make_system
 
     system = make_system(name, scenario, **overrides)
     env = FilteringEnv(system, batch_size, max_steps, reward_weights, seed, device)

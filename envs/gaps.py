@@ -15,9 +15,8 @@ complete data. Everything else (names, prior, bounds, ``f``/``g``) is the base s
 from __future__ import annotations
 
 import torch
+from daof.envs.system import StochasticSystem, SystemWrapper
 from tensordict import TensorDict
-
-from envs.system import StochasticSystem, SystemWrapper
 
 __all__ = ["GappySystem", "MISSING_KEY", "training_dropout_mask"]
 

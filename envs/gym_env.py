@@ -1,6 +1,6 @@
 """The filtering MDP as a single-episode gymnasium env, registered as ``daof/Veh2DOF-v0``.
 
-Same MDP as ``envs.filtering_env.FilteringEnv`` with batch 1 and its history window: the
+Same MDP as ``daof.envs.filtering_env.FilteringEnv`` with batch 1 and its history window: the
 observation is h_t^N (the last N frames [x̂_{t−1}, y_t, u_t, u_{t−1}], oldest first, padded with
 the first frame after a reset), the action is the estimate x̂_t, the reward −‖x_t − x̂_t‖²_W.
 It drives the same ``StochasticSystem`` (``reset_episode`` / ``advance``) with a torch.Generator
@@ -13,11 +13,10 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import torch
+from daof.envs.history import frame_keys
+from daof.envs.registry import make_system
+from daof.envs.system import StochasticSystem
 from gymnasium import spaces
-
-from envs.history import frame_keys
-from envs.registry import make_system
-from envs.system import StochasticSystem
 
 __all__ = ["FilteringGymEnv", "Veh2DOFGymEnv", "GYM_ID"]
 
@@ -129,4 +128,4 @@ class Veh2DOFGymEnv(FilteringGymEnv):
 
 
 if GYM_ID not in gymnasium.registry:
-    gymnasium.register(id=GYM_ID, entry_point="envs.gym_env:Veh2DOFGymEnv")
+    gymnasium.register(id=GYM_ID, entry_point="daof.envs.gym_env:Veh2DOFGymEnv")

@@ -4,7 +4,7 @@ h_t^N = (x̂_{t−N}, y_{t−N+1}, …, x̂_{t−1}, y_t): the last N (previous 
 pairs, each optionally followed by the controls (u_t, u_{t−1}). It is TorchRL's own
 ``CatTensors`` (one frame per step, keys in the order given) followed by ``CatFrames`` (the last
 N frames, oldest first, along the last dim). With ``missing_flags`` each frame ends with the
-``missing`` flags of a system with sensor gaps (``envs.gaps``).
+``missing`` flags of a system with sensor gaps (``daof.envs.gaps``).
 
 Reset padding: right after a reset the window holds the first frame (the prior mean and the
 first measurement) and N − 1 padding frames in front of it: copies of that frame (``"same"``,
@@ -17,9 +17,8 @@ own and must not be given one.
 
 from __future__ import annotations
 
+from daof.envs.gaps import MISSING_KEY
 from torchrl.envs import CatFrames, CatTensors, Compose, TransformedEnv
-
-from envs.gaps import MISSING_KEY
 
 __all__ = ["FRAME_KEY", "HISTORY_KEY", "PADDINGS", "frame_keys", "history_dim", "window_transform", "with_window"]
 

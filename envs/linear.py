@@ -12,10 +12,9 @@ import math
 from dataclasses import dataclass
 
 import torch
+from daof.envs.noise import GaussianNoise
+from daof.envs.system import StochasticSystem
 from tensordict import TensorDict
-
-from envs.noise import GaussianNoise
-from envs.system import StochasticSystem
 
 __all__ = ["LinearParams", "LinearOscillator", "stationary_kalman_covariance"]
 

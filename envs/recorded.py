@@ -32,9 +32,8 @@ import os
 from pathlib import Path
 
 import torch
+from daof.envs.system import StochasticSystem, SystemWrapper
 from tensordict import TensorDict
-
-from envs.system import StochasticSystem, SystemWrapper
 
 __all__ = ["RecordedSystem", "cache_key", "cached_simulate", "find_recorded"]
 

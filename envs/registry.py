@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-from envs.system import StochasticSystem
+from daof.envs.system import StochasticSystem
 
 __all__ = ["make_system", "register_system", "SYSTEMS"]
 
@@ -24,7 +24,7 @@ def make_system(name: str, scenario: str = "nominal", replay=None, **overrides) 
     ``overrides`` replace fields of the system's parameter dataclass; an unknown name, scenario
     or field is a ``ValueError`` that lists what is valid. ``replay`` (a mapping of
     ``RecordedSystem``'s ``runs``, ``steps``, ``seed``, ``cache_dir``) wraps the system so that env
-    episodes replay a recorded bank and ``simulate`` is memoised (``envs.recorded``).
+    episodes replay a recorded bank and ``simulate`` is memoised (``daof.envs.recorded``).
     """
     if name not in SYSTEMS:
         raise ValueError(f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}")
@@ -37,7 +37,7 @@ def make_system(name: str, scenario: str = "nominal", replay=None, **overrides) 
         raise ValueError(f"unknown parameter(s) {unknown} for {name}; valid: {sorted(valid)}")
     system = cls(scenario=scenario, params=params_cls(**overrides))
     if replay:
-        from envs.recorded import RecordedSystem
+        from daof.envs.recorded import RecordedSystem
 
         system = RecordedSystem.from_mapping(system, replay)
     return system

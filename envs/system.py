@@ -18,9 +18,8 @@ episode parameters), so that an env can reset a subset of runs by masked assignm
 from __future__ import annotations
 
 import torch
+from daof.envs.noise import GaussianNoise, Noise
 from tensordict import TensorDict
-
-from envs.noise import GaussianNoise, Noise
 
 __all__ = ["StochasticSystem"]
 
@@ -47,7 +46,7 @@ class StochasticSystem:
     error_scale: torch.Tensor
     #: whether filters may call f and g (False for simulator-only systems such as veh14dof)
     has_model: bool = True
-    #: observations also carry ``missing`` (0/1 per measurement channel): ``envs.gaps.GappySystem``
+    #: observations also carry ``missing`` (0/1 per measurement channel): ``daof.envs.gaps.GappySystem``
     reports_missing: bool = False
 
     # ----------------------------------------------------------------- dimensions

@@ -11,10 +11,9 @@ import math
 from dataclasses import dataclass
 
 import torch
+from daof.envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
+from daof.envs.system import StochasticSystem
 from tensordict import TensorDict
-
-from envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
-from envs.system import StochasticSystem
 
 __all__ = ["Vehicle2DOFParams", "Vehicle2DOF"]
 

@@ -2,10 +2,9 @@
 
 import os
 
+import daof.envs as envs
 import pytest
 import torch
-
-import envs
 
 os.environ.setdefault("WANDB_MODE", "disabled")
 

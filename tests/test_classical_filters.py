@@ -9,6 +9,8 @@ the counted covariance repair; divergence kept as NaN; input validation.
 import numpy as np
 import pytest
 import torch
+from daof.envs import make_system
+from daof.envs.linear import stationary_kalman_covariance
 from filterpy.monte_carlo import systematic_resample as filterpy_systematic_resample
 
 from daof.filters import (
@@ -22,8 +24,6 @@ from daof.filters import (
     systematic_resample,
 )
 from daof.filters.kalman import make_model
-from envs import make_system
-from envs.linear import stationary_kalman_covariance
 
 # specs/veh2dof.md reference RMSE [β rad, r rad/s] (prototype figures, order of magnitude only)
 UKF_REFERENCE = torch.tensor([0.0104, 0.0263])

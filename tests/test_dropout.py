@@ -12,11 +12,11 @@ import math
 
 import pytest
 import torch
+from daof.envs.gaps import training_dropout_mask
 
 from daof.evaluate import Dropout, apply_dropout, dropout_mask, run_study
 from daof.evaluate.report import write_report
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
-from envs.gaps import training_dropout_mask
 
 
 def test_mask_is_reproducible_from_its_seed_with_the_asked_for_rate():

@@ -5,14 +5,13 @@ import math
 
 import pytest
 import torch
+from daof.losses import DSACTLoss, clip_sampled_target, critic_surrogate
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 from torchrl.objectives import SoftUpdate, ValueEstimators
-
-from losses import DSACTLoss, clip_sampled_target, critic_surrogate
 
 N_OBS, N_ACT, GAMMA = 3, 2, 0.99
 RAW_ONE = math.log(math.e - 1.0)  # softplus(RAW_ONE) = 1

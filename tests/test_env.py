@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from daof.envs import make_env
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
-
-from envs import make_env
 
 FRAME = ["prev_estimate", "measurement", "control", "prev_control"]  # CatTensors order
 

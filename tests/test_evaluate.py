@@ -129,9 +129,10 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
 
 def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
     """A finished result is reused; a filter with another version (retrained weights) is evaluated again."""
+    from daof.envs import make_system
+
     from daof.evaluate import run_study
     from daof.filters import EKF
-    from envs import make_system
 
     system = make_system("linear")
     logs = []
@@ -153,9 +154,10 @@ def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
 
 def test_classical_filters_are_cached_under_their_code_and_settings():
     """Two filters built alike share a fingerprint; another particle count or seed gets its own."""
+    from daof.envs import make_system
+
     from daof.evaluate.experiment import classical_fingerprint
     from daof.filters import UKF, ParticleFilter
-    from envs import make_system
 
     system = make_system("veh2dof")
     pf = classical_fingerprint(ParticleFilter(system, 100, seed=1), system)
@@ -177,8 +179,9 @@ def _small_study(system):
 def test_scenario_report_puts_the_scenarios_side_by_side(tmp_path):
     """One table of RMSE per state per filter per scenario (best in bold), the winner of each scenario,
     every scenario's table with its ratio label, links to the per-scenario reports, CSV and JSON."""
+    from daof.envs import make_system
+
     from daof.evaluate.report import write_scenario_report
-    from envs import make_system
 
     studies = {sc: _small_study(make_system("veh2dof", sc)) for sc in ("nominal", "mismatch", "outliers")}
     reports = {sc: tmp_path / sc / "report" / "report.md" for sc in studies}
@@ -324,10 +327,11 @@ def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
 # ----------------------------------------------------------------------------- bad inputs, one line each
 def test_stale_or_missing_checkpoints_exit_with_one_line(tmp_path):
     """A checkpoint of another system, scenario or window in a job's directory, or none at all."""
+    from daof.envs import make_system
+
     from daof.evaluate.experiment import load_trained
     from daof.evaluate.jobs import TrainingJob
     from daof.filters.learned import FilterConfig, LearnedFilter
-    from envs import make_system
 
     LearnedFilter(FilterConfig(kind="DAOF-v2", system="veh2dof", window=4, num_cells=8)).save(
         tmp_path / "v" / "best.pt"

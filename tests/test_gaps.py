@@ -8,15 +8,15 @@ did in the env; the DSAC-T trainer runs on it; bad options fail clearly.
 
 import pytest
 import torch
+from daof.envs import make_system
+from daof.envs.filtering_env import FilteringEnv
+from daof.envs.gaps import MISSING_KEY, GappySystem
+from daof.envs.history import with_window
 from test_training import tiny_cfg
 from torchrl.envs.utils import check_env_specs
 
 from daof.filters.learned import FilterConfig, LearnedFilter
 from daof.train.dsac import DSACTTrainer
-from envs import make_system
-from envs.filtering_env import FilteringEnv
-from envs.gaps import MISSING_KEY, GappySystem
-from envs.history import with_window
 
 
 def gappy_env(p_max=0.3, blackout_s=0.2, window=4, steps=15, seed=11, flags=True):

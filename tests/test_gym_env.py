@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
+import daof.envs as envs  # noqa: F401  (registers daof/Veh2DOF-v0)
 import gymnasium
 import numpy as np
 import pytest
 import torch
+from daof.envs import make_env
+from daof.envs.gym_env import GYM_ID, Veh2DOFGymEnv
 from gymnasium.utils.env_checker import check_env
-
-import envs  # noqa: F401  (registers daof/Veh2DOF-v0)
-from envs import make_env
-from envs.gym_env import GYM_ID, Veh2DOFGymEnv
 
 
 # The checker's advice (normalised action box, finite observation bounds) does not fit a filter:

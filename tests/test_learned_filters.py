@@ -2,6 +2,8 @@
 
 import pytest
 import torch
+from daof.envs import make_env, make_system
+from daof.envs.filtering_env import FEEDBACK_KEY
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from daof.filters.learned import (
@@ -14,8 +16,6 @@ from daof.filters.learned import (
     startup_feature,
 )
 from daof.train.schedules import ukf_schedule
-from envs import make_env, make_system
-from envs.filtering_env import FEEDBACK_KEY
 
 
 def small(kind, window=4, system="veh2dof", **config):

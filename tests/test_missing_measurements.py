@@ -10,15 +10,15 @@ inf measurements, non-finite controls, wrong shapes and dtypes give one clear Va
 
 import math
 
+import daof.envs as envs
 import numpy as np
 import pytest
 import torch
+from daof.envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
+from daof.envs.vehicle2dof import Vehicle2DOF
 from torch import distributions as D
 
-import envs
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
-from envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
-from envs.vehicle2dof import Vehicle2DOF
 
 NAN = math.nan
 GAPS_FROM = 100  # test data: every step before this one has every channel

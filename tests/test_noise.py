@@ -10,9 +10,8 @@ import math
 
 import pytest
 import torch
+from daof.envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
 from torch import distributions as D
-
-from envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
 
 N_SAMPLES = 200_000
 Z = 5.0  # standard errors allowed for a Monte Carlo estimate

@@ -2,12 +2,11 @@
 
 import pytest
 import torch
+from daof.envs import make_env, make_system
+from daof.envs.filtering_env import FilteringEnv
+from daof.envs.recorded import RecordedSystem, cached_simulate
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
-
-from envs import make_env, make_system
-from envs.filtering_env import FilteringEnv
-from envs.recorded import RecordedSystem, cached_simulate
 
 
 @pytest.fixture
@@ -97,8 +96,8 @@ def test_the_deck_round_trips_through_state_dict(linear):
 
 
 def test_find_recorded_sees_through_wrappers(linear):
-    from envs.gaps import GappySystem
-    from envs.recorded import find_recorded
+    from daof.envs.gaps import GappySystem
+    from daof.envs.recorded import find_recorded
 
     rec = RecordedSystem(linear, runs=3, steps=4, seed=0)
     assert find_recorded(GappySystem(rec, 0.1, 0.0, 4)) is rec

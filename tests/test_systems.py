@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 import torch
-
-from envs import make_system
-from envs.system import StochasticSystem
+from daof.envs import make_system
+from daof.envs.system import StochasticSystem
 
 # Spec parameters, written out again here so the hand computation does not read the implementation.
 M, IZ, LF, LR, VX, G = 1412.0, 1536.7, 1.06, 1.85, 20.0, 9.81

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from daof.envs.filtering_env import FEEDBACK_KEY
+from daof.envs.gaps import training_dropout_mask
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
@@ -13,8 +15,6 @@ from daof.filters.learned import load_filter
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
 from daof.train.validation import rmse_per_state
-from envs.filtering_env import FEEDBACK_KEY
-from envs.gaps import training_dropout_mask
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "veh2dof"
 
@@ -269,8 +269,9 @@ def test_slf_learning_rate_follows_the_same_cosine(tmp_path):
 
 def test_shared_reward_weights_keep_the_settled_ratio_between_states():
     """kalman_shared: one factor per step (the settled over the step's expected reward), so W_t ∝ W."""
+    from daof.envs import make_system
+
     from daof.train.schedules import reward_weight_schedule
-    from envs import make_system
 
     system = make_system("veh2dof")
     w = 1.0 / (system.state_dim * system.error_scale**2)

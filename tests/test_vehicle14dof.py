@@ -11,18 +11,17 @@ from __future__ import annotations
 
 import math
 
+import daof.envs as envs
 import pytest
 import torch
+from daof.envs.vehicle14dof.dynamics import rhs
+from daof.envs.vehicle14dof.integrate import rk4_step
+from daof.envs.vehicle14dof.manoeuvre import speed_holder, steering
+from daof.envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
+from daof.envs.vehicle14dof.sensors import imu
+from daof.envs.vehicle14dof.system import initial_state
+from daof.envs.vehicle14dof.tyre import cornering_stiffness, longitudinal_stiffness, magic_formula, pure_forces
 from tensordict import TensorDict
-
-import envs
-from envs.vehicle14dof.dynamics import rhs
-from envs.vehicle14dof.integrate import rk4_step
-from envs.vehicle14dof.manoeuvre import speed_holder, steering
-from envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
-from envs.vehicle14dof.sensors import imu
-from envs.vehicle14dof.system import initial_state
-from envs.vehicle14dof.tyre import cornering_stiffness, longitudinal_stiffness, magic_formula, pure_forces
 
 F64 = torch.float64
 G = 9.81
@@ -314,7 +313,7 @@ def test_t7_understeer_table(ci):
 
 def test_t11_sensor_equations_steady_turn(ci):
     """T11 at the steady 3.0-s row of App. A.2 (the 8.5-s row is in the slow test), and ‖GNSS v‖."""
-    from envs.vehicle14dof.sensors import gnss
+    from daof.envs.vehicle14dof.sensors import gnss
 
     x, _ = ci.at(3.0)
     g = gnss(x.double())

@@ -5,7 +5,7 @@ out for a stretch of time in every run (the issue's scenario: the yaw-rate chann
 mask comes from its own seeded generator and depends only on the data's shape, the options and the
 seed, never on the data's values, so the same options give the same gaps on any system. NaN is how
 every filter in ``daof.filters`` recognises a missing channel (docs/missing_data.md). The gaps
-that learned filters are trained through are ``envs.gaps.training_dropout_mask``.
+that learned filters are trained through are ``daof.envs.gaps.training_dropout_mask``.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
-from envs.system import StochasticSystem
+from daof.envs.system import StochasticSystem
 
 __all__ = ["Dropout", "apply_dropout", "dropout_mask"]
 
@@ -47,7 +47,7 @@ def dropout_mask(
 
     Random gaps: each entry independently with probability ``p``. Blackout ``(channel, start_s,
     duration_s)``: that channel in every run at the steps whose time t·Δτ (t = 1..T, the
-    ``envs.system`` convention: data index k is t = k + 1) lies in [start_s, start_s + duration_s);
+    ``daof.envs.system`` convention: data index k is t = k + 1) lies in [start_s, start_s + duration_s);
     it must fit inside the data.
     """
     runs, steps, dim = shape

@@ -20,12 +20,12 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig
 
+from daof.envs import make_system
 from daof.evaluate.jobs import TrainingJob, run_jobs
 from daof.evaluate.study import ORACLE, Study, run_study
 from daof.filters import EKF, UKF, JointParameterPF, ParticleFilter
 from daof.filters.base import Filter
 from daof.filters.learned import load_filter
-from envs import make_system
 
 __all__ = [
     "checkpoint_fingerprint",

@@ -19,11 +19,11 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from daof.envs.system import StochasticSystem
 from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
 from daof.train.checkpoint import atomic_save
-from envs.system import StochasticSystem
 
 __all__ = ["FilterResult", "Study", "run_study"]
 

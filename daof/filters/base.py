@@ -2,7 +2,7 @@
 
 A filter sees only what a real filter would: y_t ("measurement"), u_{t-1} ("prev_control") and
 u_t ("control") for t = 1..T, plus the model if it is model-based. It starts from the prior
-x̂_0 = prior mean (``envs.system`` time convention); the truth ("state") is never read.
+x̂_0 = prior mean (``daof.envs.system`` time convention); the truth ("state") is never read.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDictBase
 
-from envs.system import StochasticSystem
+from daof.envs.system import StochasticSystem
 
 __all__ = ["Filter"]
 

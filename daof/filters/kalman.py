@@ -2,7 +2,7 @@
 
 Each filter gets the system's nominal f and g, Q = process-noise covariance, R = measurement-noise
 covariance and starts from x̂_0 = prior mean, P_0 = prior covariance; for t = 1..T it predicts with
-u_{t-1} and updates with y_t = g(x_t, u_t) (``envs.system`` time convention). filterpy works in
+u_{t-1} and updates with y_t = g(x_t, u_t) (``daof.envs.system`` time convention). filterpy works in
 float64; ``dtype`` only sets the dtype of the returned estimates.
 
 A NaN measurement channel is missing (sensor dropout): that step updates with the present
@@ -24,8 +24,8 @@ import torch
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from filterpy.kalman import KalmanFilter as _FilterpyKF
 
+from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
-from envs.system import StochasticSystem
 
 __all__ = ["CovarianceRepair", "NumpyModel", "TorchModel", "make_model", "KalmanFilter", "EKF", "UKF"]
 

@@ -27,11 +27,11 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 
+from daof.envs.filtering_env import FEEDBACK_KEY
+from daof.envs.history import HISTORY_KEY, PADDINGS
+from daof.envs.registry import make_system
+from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
-from envs.filtering_env import FEEDBACK_KEY
-from envs.history import HISTORY_KEY, PADDINGS
-from envs.registry import make_system
-from envs.system import StochasticSystem
 
 __all__ = ["FilterConfig", "LearnedFilter", "hold_last_value", "load_filter"]
 
@@ -85,7 +85,7 @@ class FilterConfig:
     #: docs/benchmarks/learned.md. Checkpoints saved before the field existed are exact.
     gelu_approximate: str = "tanh"
     #: closed-loop filters: what fills the window in front of the first frame after a reset,
-    #: "same" (copies of it) or "zeros" (``envs.history``)
+    #: "same" (copies of it) or "zeros" (``daof.envs.history``)
     window_padding: str = "same"
     #: DAOF-v2's action: "estimate" (the paper's x̂_t = π(h_t), squashed onto the plausible state
     #: range) or "increment" (x̂_t = x̂_{t−1} + b_t ⊙ π(h_t), π ∈ [−1, 1]ⁿ; x̂_{t−1} is in h_t, so the
@@ -95,7 +95,7 @@ class FilterConfig:
     v2_action: str = "estimate"
     #: SLF, DAOF-v2: each frame also carries one 0/1 flag per measurement channel, 1 where the
     #: channel is missing (its value then holds the last present one). Meant for filters trained
-    #: through random gaps (``dropout`` in the recipes' configs, ``envs.gaps``); docs/missing_data.md
+    #: through random gaps (``dropout`` in the recipes' configs, ``daof.envs.gaps``); docs/missing_data.md
     missing_mask: bool = False
 
     def __post_init__(self):

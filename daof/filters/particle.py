@@ -13,8 +13,8 @@ import math
 
 import torch
 
+from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
-from envs.system import StochasticSystem
 
 __all__ = ["systematic_resample", "ParticleFilter", "JointParameterPF"]
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import torch
 
+from daof.envs.linear import stationary_kalman_covariance
+from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
-from envs.linear import stationary_kalman_covariance
-from envs.system import StochasticSystem
 
 __all__ = ["StationaryKalmanFilter"]
 

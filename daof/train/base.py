@@ -19,11 +19,11 @@ from torchrl._utils import timeit
 from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
+from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
-from envs.registry import make_system
 
 __all__ = ["FilterTrainer"]
 
@@ -81,7 +81,7 @@ class FilterTrainer:
 
     @property
     def training_gaps(self) -> tuple[float, float]:
-        """(p_max, blackout_s) of the config's ``dropout`` (random sensor gaps to train through; ``envs.gaps``).
+        """(p_max, blackout_s) of the config's ``dropout`` (random sensor gaps to train through; ``daof.envs.gaps``).
 
         (0, 0) when the config has none: complete training data.
         """

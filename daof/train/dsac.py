@@ -28,16 +28,16 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
+from daof.envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
+from daof.envs.gaps import GappySystem
+from daof.envs.history import FRAME_KEY, with_window
+from daof.envs.recorded import find_recorded
+from daof.losses import DSACTLoss
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
 from daof.train.sampling import ReplayPriority, WeightedSampler
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
-from envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
-from envs.gaps import GappySystem
-from envs.history import FRAME_KEY, with_window
-from envs.recorded import find_recorded
-from losses import DSACTLoss
 
 __all__ = ["DSACTTrainer"]
 

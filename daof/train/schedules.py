@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import torch
 
+from daof.envs.system import StochasticSystem
 from daof.filters.kalman import UKF
 from daof.filters.learned import SCHEDULE_STEPS
-from envs.system import StochasticSystem
 
 __all__ = ["ukf_schedule", "reward_weight_schedule"]
 

@@ -17,9 +17,9 @@ import torch
 from omegaconf import DictConfig
 from torchrl._utils import timeit
 
+from daof.envs.gaps import training_dropout_mask
 from daof.filters.learned import sliding_windows
 from daof.train.base import FilterTrainer
-from envs.gaps import training_dropout_mask
 
 __all__ = ["SLFTrainer", "gap_seed"]
 

@@ -5,7 +5,7 @@ ODE), ``integrate`` (RK4 at h = 1 ms), ``manoeuvre`` (steering profile and PI sp
 ``sensors`` (15 channels + GNSS flag), ``system`` (the ``StochasticSystem``).
 """
 
-from envs.vehicle14dof.params import TyreCoeffs, Vehicle14DOFParams
-from envs.vehicle14dof.system import Vehicle14DOF
+from daof.envs.vehicle14dof.params import TyreCoeffs, Vehicle14DOFParams
+from daof.envs.vehicle14dof.system import Vehicle14DOF
 
 __all__ = ["Vehicle14DOF", "Vehicle14DOFParams", "TyreCoeffs"]

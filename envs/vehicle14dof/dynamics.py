@@ -14,9 +14,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-
-from envs.vehicle14dof.params import Constants
-from envs.vehicle14dof.tyre import magic_formula
+from daof.envs.vehicle14dof.params import Constants
+from daof.envs.vehicle14dof.tyre import magic_formula
 
 __all__ = ["Aux", "rhs", "N_STATE", "IDX"]
 

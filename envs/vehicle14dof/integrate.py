@@ -8,10 +8,9 @@ App. A reference. One filter step Δt = 20 ms is n = Δt/h = 20 RK4 steps.
 from __future__ import annotations
 
 import torch
-
-from envs.vehicle14dof.dynamics import rhs
-from envs.vehicle14dof.manoeuvre import speed_holder, steering
-from envs.vehicle14dof.params import Constants
+from daof.envs.vehicle14dof.dynamics import rhs
+from daof.envs.vehicle14dof.manoeuvre import speed_holder, steering
+from daof.envs.vehicle14dof.params import Constants
 
 __all__ = ["rk4_step", "drive_inputs", "make_substep", "integrate_substeps"]
 

@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 
 import torch
+from daof.envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
 from tensordict import TensorDict
-
-from envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
 
 __all__ = ["sample_manoeuvre", "nominal_manoeuvre", "ramp", "steering", "speed_holder", "max_amplitude"]
 

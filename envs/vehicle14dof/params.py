@@ -12,8 +12,7 @@ from dataclasses import dataclass, field, fields
 from types import SimpleNamespace
 
 import torch
-
-from envs.vehicle14dof.tyre import TyreCoeffs, longitudinal_stiffness, prepare
+from daof.envs.vehicle14dof.tyre import TyreCoeffs, longitudinal_stiffness, prepare
 
 __all__ = ["TyreCoeffs", "Vehicle14DOFParams", "Constants"]
 

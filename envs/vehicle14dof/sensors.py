@@ -11,11 +11,10 @@ from __future__ import annotations
 import math
 
 import torch
+from daof.envs.noise import Noise
+from daof.envs.vehicle14dof.dynamics import Aux
+from daof.envs.vehicle14dof.params import DEG, Constants, Vehicle14DOFParams
 from tensordict import TensorDict
-
-from envs.noise import Noise
-from envs.vehicle14dof.dynamics import Aux
-from envs.vehicle14dof.params import DEG, Constants, Vehicle14DOFParams
 
 __all__ = [
     "MEASUREMENT_NAMES",

@@ -11,15 +11,13 @@ filters (``has_model = False``): ``f`` and ``g`` keep raising ``NotImplementedEr
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict
-
-from envs.noise import GaussianMixtureNoise, GaussianNoise
-from envs.system import StochasticSystem
-from envs.vehicle14dof.dynamics import N_STATE, rhs
-from envs.vehicle14dof.integrate import drive_inputs, integrate_substeps, make_substep
-from envs.vehicle14dof.manoeuvre import sample_manoeuvre
-from envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
-from envs.vehicle14dof.sensors import (
+from daof.envs.noise import GaussianMixtureNoise, GaussianNoise
+from daof.envs.system import StochasticSystem
+from daof.envs.vehicle14dof.dynamics import N_STATE, rhs
+from daof.envs.vehicle14dof.integrate import drive_inputs, integrate_substeps, make_substep
+from daof.envs.vehicle14dof.manoeuvre import sample_manoeuvre
+from daof.envs.vehicle14dof.params import DEG, KMH, Constants, Vehicle14DOFParams
+from daof.envs.vehicle14dof.sensors import (
     MEASUREMENT_NAMES,
     MEASUREMENT_UNITS,
     ChannelLaplaceNoise,
@@ -28,6 +26,7 @@ from envs.vehicle14dof.sensors import (
     measure,
     sample_biases,
 )
+from tensordict import TensorDict
 
 __all__ = ["Vehicle14DOF", "initial_state", "truth"]
 

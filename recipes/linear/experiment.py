@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import hydra
+from daof.envs import make_system
 from omegaconf import DictConfig
 
 from daof.evaluate.experiment import (
@@ -33,7 +34,6 @@ from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import write_report
 from daof.filters import KalmanFilter, ParticleFilter, StationaryKalmanFilter
-from envs import make_system
 
 HERE = Path(__file__).resolve().parent
 TRAINERS = HERE.parent / "veh2dof"  # the recipe scripts are shared; this directory holds the config

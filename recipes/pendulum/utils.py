@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+from daof.losses import DSACTLoss
 from omegaconf import DictConfig
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -12,8 +13,6 @@ from torchrl.envs import Compose, DoubleToFloat, EnvBase, GymEnv, RewardSum, Ste
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
-
-from losses import DSACTLoss
 
 ACTIVATIONS = {"gelu": nn.GELU, "relu": nn.ReLU, "tanh": nn.Tanh}
 

@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 
 import hydra
+from daof.envs import make_system
+from daof.envs.recorded import RecordedSystem
 from omegaconf import DictConfig
 
 from daof.evaluate.experiment import (
@@ -31,8 +33,6 @@ from daof.evaluate.experiment import (
 )
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report
-from envs import make_system
-from envs.recorded import RecordedSystem
 
 HERE = Path(__file__).resolve().parent
 TRAINERS = HERE.parent / "veh2dof"  # the recipe scripts are shared; this directory holds the configs

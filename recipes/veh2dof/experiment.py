@@ -22,6 +22,7 @@ from pathlib import Path
 
 import hydra
 import torch
+from daof.envs import make_system
 from omegaconf import DictConfig, open_dict
 
 from daof.evaluate import Dropout, run_study
@@ -39,7 +40,6 @@ from daof.evaluate.experiment import (
 from daof.evaluate.jobs import TrainingJob
 from daof.evaluate.report import write_report, write_scenario_report
 from daof.filters import ParticleFilter
-from envs import make_system
 
 HERE = Path(__file__).resolve().parent
 SCRIPT = "recipes/veh2dof/experiment.py"
