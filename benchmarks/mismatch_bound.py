@@ -31,6 +31,7 @@ from daof.envs.vehicle2dof import Vehicle2DOF
 
 from daof.evaluate.metrics import per_run_rmse, pooled_rmse
 from daof.filters import JointParameterPF, ParticleFilter
+from daof.io import safe_load
 
 
 class KnownParameterVeh2DOF(Vehicle2DOF):
@@ -94,7 +95,7 @@ def main() -> None:
         for path in sorted(args.study.glob("*.pt")):
             if "@" in path.stem or "N=" in path.stem:  # dropout studies and the window study
                 continue
-            blob = torch.load(path, weights_only=False)
+            blob = safe_load(path, map_location=None)
             key = {k: blob["key"].get(k) for k in ("scenario", "runs", "steps", "seed")}
             if key != {"scenario": "mismatch", "runs": args.runs, "steps": args.steps, "seed": args.seed}:
                 raise SystemExit(f"{path} is a study of {key}, not of this data")

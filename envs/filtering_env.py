@@ -203,16 +203,20 @@ def make_env(
     include_controls: bool = True,
     reward_weights=None,
     padding: str = "same",
+    layout=None,
     **overrides,
 ):
     """The filtering env of system ``name`` with its history window (a ``TransformedEnv``).
 
     ``padding`` fills the window in front of the first frame (``daof.envs.history``); ``overrides`` go
-    to ``make_system`` (system parameters).
+    to ``make_system`` (system parameters). ``layout`` (a ``FrameLayout``, e.g. a learned filter's
+    ``filter.layout``) gives the window instead of ``window``, ``include_controls`` and ``padding``.
     """
-    from daof.envs.history import with_window
+    from daof.envs.history import FrameLayout, with_window
     from daof.envs.registry import make_system
 
     system = make_system(name, scenario, **overrides)
     env = FilteringEnv(system, batch_size, max_steps, reward_weights, seed, device)
-    return with_window(env, window, include_controls and system.control_dim > 0, padding)
+    if layout is None:
+        layout = FrameLayout.for_system(system, window, include_controls=include_controls, padding=padding)
+    return with_window(env, layout)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import gymnasium
 import numpy as np
 import torch
-from daof.envs.history import frame_keys
+from daof.envs.history import FrameLayout
 from daof.envs.registry import make_system
 from daof.envs.system import StochasticSystem
 from gymnasium import spaces
@@ -31,7 +31,9 @@ class FilteringGymEnv(gymnasium.Env):
         window: N, the number of frames in the observation.
         max_steps: T; the episode is ``truncated`` (never ``terminated``) after T estimates.
         reward_weights: W per state; default 1/(n·error_scale²) as in the TorchRL env.
+        include_controls: frames carry (u_t, u_{t−1}) (systems with controls).
 
+    The window is the closed-loop ``FrameLayout`` of the TorchRL env (``self.layout``, "same" padding).
     ``info`` carries ``true_state`` (x_t of the new observation) for logging only.
     """
 
@@ -45,39 +47,31 @@ class FilteringGymEnv(gymnasium.Env):
         reward_weights=None,
         include_controls: bool = True,
     ):
-        if not isinstance(window, int) or window < 1:
-            raise ValueError(f"window must be an integer N >= 1, got {window!r}")
         if max_steps < 1:
             raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+        self.layout = FrameLayout.for_system(system, window, include_controls=include_controls)
         self.system = system
         self.window = window
         self.max_steps = int(max_steps)
-        self._keys = frame_keys(include_controls and system.control_dim > 0)
         n = system.state_dim
         if reward_weights is None:
             reward_weights = 1.0 / (n * system.error_scale**2)
         self.reward_weights = torch.as_tensor(reward_weights, dtype=torch.float32)
         if self.reward_weights.shape != (n,) or (self.reward_weights < 0).any():
             raise ValueError(f"reward_weights must be {n} non-negative numbers, got {reward_weights}")
-        width = {
-            "prev_estimate": n,
-            "measurement": system.measurement_dim,
-            "control": system.control_dim,
-            "prev_control": system.control_dim,
-        }
-        self.frame_dim = sum(width[k] for k in self._keys)
-        self.observation_space = spaces.Box(-np.inf, np.inf, (window * self.frame_dim,), np.float32)
+        self.frame_dim = self.layout.frame_dim
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.layout.width,), np.float32)
         self.action_space = spaces.Box(
             system.state_low.numpy().astype(np.float32), system.state_high.numpy().astype(np.float32)
         )
         self._rng: torch.Generator | None = None
         self._sim = self._obs = None
-        self._frames = np.zeros((window, self.frame_dim), np.float32)
+        self._window: torch.Tensor | None = None
         self._steps = 0
 
-    def _frame(self, prev_estimate: torch.Tensor) -> np.ndarray:
-        parts = {"prev_estimate": prev_estimate, **{k: self._obs[k][0] for k in self._keys[1:]}}
-        return torch.cat([parts[k] for k in self._keys]).numpy()
+    def _frame(self, prev_estimate: torch.Tensor) -> torch.Tensor:
+        values = {key: self._obs[key][0] for key in self.layout.keys if key != "prev_estimate"}
+        return self.layout.frame({**values, "prev_estimate": prev_estimate.float()})
 
     def _info(self) -> dict:
         return {"true_state": self._obs["state"][0].numpy().copy(), "step": self._steps}
@@ -93,8 +87,8 @@ class FilteringGymEnv(gymnasium.Env):
             self._sim, self._obs = self.system.advance(sim, self._rng)
         self._steps = 0
         # Padding "same": N copies of the first frame (prior mean x̂_0, y_1, u_1, u_0).
-        self._frames[:] = self._frame(self.system.prior.mean.float())
-        return self._frames.reshape(-1).copy(), self._info()
+        self._window = self.layout.first_window(self._frame(self.system.prior.mean))
+        return self._window.numpy().astype(np.float32), self._info()
 
     def step(self, action):
         if self._sim is None:
@@ -107,10 +101,9 @@ class FilteringGymEnv(gymnasium.Env):
         with torch.no_grad():
             self._sim, self._obs = self.system.advance(self._sim, self._rng)
         self._steps += 1
-        self._frames[:-1] = self._frames[1:]
-        self._frames[-1] = self._frame(estimate)
+        self._window = self.layout.slide(self._window, self._frame(estimate))
         truncated = self._steps >= self.max_steps
-        return self._frames.reshape(-1).copy(), reward, False, truncated, self._info()
+        return self._window.numpy().astype(np.float32), reward, False, truncated, self._info()
 
 
 class Veh2DOFGymEnv(FilteringGymEnv):

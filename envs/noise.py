@@ -141,14 +141,19 @@ class GaussianNoise(Noise):
 
 
 class GaussianMixtureNoise(Noise):
-    """Independent per-axis Gaussian mixture, scaled per axis.
+    """Gaussian mixture per axis, scaled per axis; the component independent per axis or joint.
 
-    Axis i is ``scale_i * z`` with ``z ~ sum_k w_k N(m_k, s_k^2)``; the component is drawn
-    independently per axis (which is why the covariance is diagonal). ``weights``, ``means`` and
+    Axis i is ``scale_i * z_i`` with ``z_i ~ sum_k w_k N(m_ik, s_ik^2)``. ``weights``, ``means`` and
     ``stds`` are ``[K]`` (shared by all axes) or ``[dim, K]``.
+
+    ``joint=False`` (default): the component is drawn independently per axis, so the axes are
+    independent (a K^dim-component mixture of the vector; diagonal covariance).
+    ``joint=True``: one component k per sample, shared by every axis, and the axes independent
+    given k — a K-component mixture of the vector, e.g. a disturbance that is either small on
+    all axes or large on all axes. Its weights must then be the same for every axis.
     """
 
-    def __init__(self, weights, means, stds, scale):
+    def __init__(self, weights, means, stds, scale, joint: bool = False):
         self.scale = _as_tensor(scale)
         self.dim = self.scale.shape[-1]
         w, m, s = (_as_tensor(v).expand(self.dim, -1).clone() for v in (weights, means, stds))
@@ -156,18 +161,28 @@ class GaussianMixtureNoise(Noise):
             raise ValueError(f"mixture weights must sum to 1, got {w.sum(-1).tolist()}")
         if (s <= 0).any() or (self.scale <= 0).any():
             raise ValueError("mixture stds and axis scales must be positive")
+        if joint and not (w == w[:1]).all():
+            raise ValueError("a joint mixture (one component for all axes) needs the same weights on every axis")
         self.weights, self.means, self.stds = w, m, s
+        self.joint = bool(joint)
+
+    def _components(self) -> D.Distribution:
+        """Per axis and component: N(m_ik·scale_i, (s_ik·scale_i)²), batch ``[dim, K]``."""
+        return D.Normal(self.means * self.scale[:, None], self.stds * self.scale[:, None])
 
     def _dist(self) -> D.Distribution:
-        mix = D.Categorical(probs=self.weights)
-        comp = D.Normal(self.means * self.scale[:, None], self.stds * self.scale[:, None])
-        return D.Independent(D.MixtureSameFamily(mix, comp), 1)
+        if self.joint:
+            # components over the whole vector: batch [K] of Independent normals over the dim axes
+            comp = D.Normal(self.means.T * self.scale, self.stds.T * self.scale)
+            return D.MixtureSameFamily(D.Categorical(probs=self.weights[0]), D.Independent(comp, 1))
+        return D.Independent(D.MixtureSameFamily(D.Categorical(probs=self.weights), self._components()), 1)
 
     def sample(self, shape=(), generator=None):
         full = self._shape(shape)
         device = self._device()
-        # Component index per axis by inverse CDF of the categorical weights.
-        u = torch.rand(full, generator=generator, device=device)
+        # Component index by inverse CDF of the categorical weights: one per axis, or one per
+        # sample shared by all axes (joint).
+        u = torch.rand((*full[:-1], 1) if self.joint else full, generator=generator, device=device)
         cdf = self.weights.cumsum(-1)
         k = (u[..., None] > cdf).sum(-1).clamp_max(self.weights.shape[-1] - 1)
         eps = torch.randn(full, generator=generator, device=device)
@@ -182,7 +197,17 @@ class GaussianMixtureNoise(Noise):
         return self._dist().log_prob(value)
 
     def channel_log_prob(self, value):
+        if self.joint:
+            return super().channel_log_prob(value)
         return self._dist().base_dist.log_prob(value)
+
+    def marginal_log_prob(self, value, present):
+        if not self.joint:
+            return super().marginal_log_prob(value, present)
+        # the present axes S of a joint mixture: log Σ_k w_k ∏_{i∈S} N_ik(x_i); none present gives 0
+        per_axis = self._components().log_prob(value[..., :, None])  # [..., dim, K]
+        per_axis = torch.where(present[..., :, None], per_axis, 0.0)
+        return torch.logsumexp(self.weights[0].log() + per_axis.sum(-2), -1)
 
     @property
     def mean(self):
@@ -190,8 +215,13 @@ class GaussianMixtureNoise(Noise):
 
     @property
     def covariance(self):
-        second = (self.weights * (self.stds**2 + self.means**2)).sum(-1)
         mean = (self.weights * self.means).sum(-1)
+        if self.joint:
+            # Σ_k w_k (diag(s_k²) + m_k m_kᵀ) − μ μᵀ, in units of scale_i scale_j
+            w, m = self.weights[0], self.means
+            second = torch.einsum("k,ik,jk->ij", w, m, m) + torch.diag((self.weights * self.stds**2).sum(-1))
+            return (second - torch.outer(mean, mean)) * torch.outer(self.scale, self.scale)
+        second = (self.weights * (self.stds**2 + self.means**2)).sum(-1)
         return torch.diag((second - mean**2) * self.scale**2)
 
 

@@ -17,6 +17,9 @@ episode parameters), so that an env can reset a subset of runs by masked assignm
 
 from __future__ import annotations
 
+import copy
+
+import numpy as np
 import torch
 from daof.envs.noise import GaussianNoise, Noise
 from tensordict import TensorDict
@@ -70,6 +73,49 @@ class StochasticSystem:
     def g(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Noise-free nominal measurement y_t = g(x_t, u_t), batched over leading dims."""
         raise NotImplementedError(f"{self.name} offers no measurement model to filters")
+
+    # ----------------------------------------------------------------- the model in numpy
+    def f_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``f`` on float64 numpy arrays, batched over leading dims: the model of the filterpy filters.
+
+        By default the torch ``f`` of a float64 CPU copy of the system (made at the first call, and
+        again after ``to``). A system whose own numpy code is faster overrides ``f_numpy`` and
+        ``g_numpy`` (see ``has_numpy_model``).
+        """
+        return self._torch_in_numpy("f", x, u)
+
+    def g_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``g`` on float64 numpy arrays, batched over leading dims (default: the torch ``g``, as ``f_numpy``)."""
+        return self._torch_in_numpy("g", x, u)
+
+    @property
+    def has_numpy_model(self) -> bool:
+        """Whether ``f_numpy`` and ``g_numpy`` are numpy code of the system's own rather than the torch wrapper.
+
+        Such code must also take complex arrays (the Kalman filters take complex-step Jacobians of
+        it). Only where the class that writes ``f_numpy`` (``g_numpy``) also owns the ``f`` (``g``)
+        it transcribes: a subclass that changes ``f`` or ``g`` but not its numpy twin inherits numpy
+        code that no longer fits it, so users of the pair (``daof.filters.kalman.make_model``) take the
+        torch model when this is False.
+        """
+        mro = type(self).__mro__
+
+        def owner(name: str) -> type:
+            return next(cls for cls in mro if name in vars(cls))
+
+        return all(
+            owner(f"{fn}_numpy") is not StochasticSystem and issubclass(owner(f"{fn}_numpy"), owner(fn))
+            for fn in ("f", "g")
+        )
+
+    def _torch_in_numpy(self, fn: str, x, u) -> np.ndarray:
+        twin = self.__dict__.get("_float64_twin")
+        if twin is None:
+            # StochasticSystem.to hands its argument to Tensor.to, which also accepts a dtype
+            twin = self._float64_twin = copy.deepcopy(self).to("cpu").to(torch.float64)
+        x, u = (torch.from_numpy(np.asarray(v, np.float64)) for v in (x, u))
+        with torch.no_grad():
+            return getattr(twin, fn)(x, u).numpy()
 
     # ----------------------------------------------------------------- uncertain model parameters
     def uncertain_parameters(self) -> dict[str, tuple[float, float]]:
@@ -163,6 +209,7 @@ class StochasticSystem:
     # ----------------------------------------------------------------- helpers
     def to(self, device) -> StochasticSystem:
         """Move noises and tensor attributes to ``device`` (in place)."""
+        self.__dict__.pop("_float64_twin", None)  # the model's numpy wrapper makes a new one
         for noise in (self.prior, self.process_noise, self.measurement_noise):
             noise.to(device)
         for name, value in vars(self).items():
@@ -227,6 +274,16 @@ class SystemWrapper(StochasticSystem):
 
     def g(self, x, u):
         return self.base.g(x, u)
+
+    def f_numpy(self, x, u):
+        return self.base.f_numpy(x, u)
+
+    def g_numpy(self, x, u):
+        return self.base.g_numpy(x, u)
+
+    @property
+    def has_numpy_model(self) -> bool:
+        return self.base.has_numpy_model and StochasticSystem.has_numpy_model.fget(self)
 
     def truth(self, x):
         return self.base.truth(x)

@@ -10,7 +10,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+from daof.envs.checks import check_params
 from daof.envs.noise import GaussianMixtureNoise, GaussianNoise, LaplaceNoise, OutlierLaplaceNoise
 from daof.envs.system import StochasticSystem
 from tensordict import TensorDict
@@ -50,6 +52,17 @@ class Vehicle2DOFParams:
     # mismatch scenario: true μ and B drawn per episode
     mismatch_mu: tuple[float, float] = (0.7, 1.0)
     mismatch_B: tuple[float, float] = (8.0, 12.0)
+
+    def __post_init__(self):
+        check_params(
+            self,
+            positive=("m", "Iz", "lf", "lr", "vx", "g", "mu", "B", "C", "dt", "steer_period_s", "process_scale",
+                      "mixture_stds", "measurement_scale", "prior_std", "mismatch_mu", "mismatch_B"),
+            nonnegative=("steer_amplitude_deg", "outlier_magnitude"),
+            intervals=("steer_amplitude_deg", "steer_period_s", "mismatch_mu", "mismatch_B"),
+            probabilities=("outlier_prob",),
+            weights=("mixture_weights",),
+        )  # fmt: skip
 
 
 def _uniform(lo_hi, runs, generator, device) -> torch.Tensor:
@@ -160,6 +173,37 @@ class Vehicle2DOF(StochasticSystem):
         Ba = torch.addcmul(x @ M, delta, neg_e1) * self.p.B
         Fy = torch.sin(self.p.C * torch.atan(torch.lerp(Ba, torch.atan(Ba), self.p.E))) * muFz
         return x @ J + (Fy * torch.cos(delta * e1)) @ G
+
+    # ----------------------------------------------------------------- the model in numpy
+    # The Kalman filters (filterpy, float64) call the model a few times per step on a few points.
+    # Measured per call (issue 31): f or g on 5 sigma points 27 µs here, 56-62 µs through the torch
+    # wrapper (StochasticSystem.f_numpy); the Jacobian F 42 µs by complex step on these lines,
+    # 890 µs by torch.func.jacrev (TorchModel). benchmarks/bench_classical.py --models times them too.
+    def f_numpy(self, x, u):
+        """Nominal ``f`` in numpy, the spec's equations as written (also for complex x: complex-step Jacobians)."""
+        p = self.p
+        Fyf_c, Fyr = self._forces_numpy(x, u)
+        beta_dot = (Fyf_c + Fyr) / (p.m * p.vx) - x[..., 1]
+        r_dot = (p.lf * Fyf_c - p.lr * Fyr) / p.Iz
+        return x + self.dt * np.stack([beta_dot, r_dot], -1)
+
+    def g_numpy(self, x, u):
+        """Nominal ``g`` = [a_y, r] in numpy (as ``f_numpy``)."""
+        Fyf_c, Fyr = self._forces_numpy(x, u)
+        return np.stack([(Fyf_c + Fyr) / self.p.m, x[..., 1]], -1)
+
+    def _forces_numpy(self, x, u):
+        """(front lateral force along the body axis, rear lateral force) at the nominal μ, B."""
+        p = self.p
+        beta, r, delta = x[..., 0], x[..., 1], u[..., 0]
+        Fyf = self._tyre_numpy(beta + p.lf * r / p.vx - delta, self.Fzf)
+        Fyr = self._tyre_numpy(beta - p.lr * r / p.vx, self.Fzr)
+        return Fyf * np.cos(delta), Fyr
+
+    def _tyre_numpy(self, alpha, Fz):
+        p = self.p
+        Ba = p.B * alpha
+        return -p.mu * Fz * np.sin(p.C * np.arctan(Ba - p.E * (Ba - np.arctan(Ba))))
 
     # ----------------------------------------------------------------- uncertain parameters
     def uncertain_parameters(self) -> dict[str, tuple[float, float]]:

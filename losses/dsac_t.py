@@ -41,7 +41,6 @@ def critic_surrogate(
     y_b: Tensor,
     sigma_bar: Tensor,
     epsilon: float,
-    mean_weighting: str = "variance",
 ) -> Tensor:
     """The DSAC-T critic surrogate L_i (spec, step 5), averaged over the batch (last dim).
 
@@ -49,17 +48,9 @@ def critic_surrogate(
     y_b in the std term, both scaled by (σ̄² + ε):
     ∂L/∂μ = −(σ̄²+ε)(y_q − μ̂)/(σ̂²+ε),  ∂L/∂σ = −(σ̄²+ε)((μ̂ − y_b)² − σ̂²)/(σ̂³+ε)  (per sample / B).
     Only ``mu`` and ``sigma`` carry gradient; ``sigma_bar`` has the leading dims (all but the batch).
-
-    ``mean_weighting="uniform"`` drops the per-sample 1/(σ̂² + ε) of the mean term, so ∂L/∂μ =
-    −(y_q − μ̂): least squares, as β-NLL with β = 1 (Seitzer et al., ICLR 2022). With the Gaussian
-    NLL weighting a sample with a large predicted σ moves the mean little, and a quadratic reward's
-    costly actions are exactly the high-variance ones, so a fit of limited capacity flattens them.
     """
     mu_hat, sigma_hat = mu.detach(), sigma.detach()
-    if mean_weighting == "uniform":
-        grad_mu = -(y_q - mu_hat) / (sigma_bar.pow(2) + epsilon).unsqueeze(-1)
-    else:
-        grad_mu = -(y_q - mu_hat) / (sigma_hat.pow(2) + epsilon)
+    grad_mu = -(y_q - mu_hat) / (sigma_hat.pow(2) + epsilon)
     grad_sigma = -((mu_hat - y_b).pow(2) - sigma_hat.pow(2)) / (sigma_hat.pow(3) + epsilon)
     return (sigma_bar.pow(2) + epsilon) * (grad_mu * mu + grad_sigma * sigma).mean(-1)
 
@@ -93,8 +84,6 @@ class DSACTLoss(LossModule):
         epsilon: ε in the surrogate's denominators and its (σ̄² + ε) scale.
         tau_b: rate of the moving average σ̄.
         sample_clip: the N(0, 1) draw for z′ is clamped to ±sample_clip before scaling by σ′.
-        mean_weighting: "variance" (DSAC-T: each sample's mean term weighted by 1/(σ̂² + ε)) or
-            "uniform" (least squares on the mean; see ``critic_surrogate``).
         reward_components: K, the length of the reward vector under ``tensor_keys.reward``
             (1: the scalar reward of DSAC-T; K > 1: one value distribution per reward term).
         delay_actor, delay_qvalue: keep target copies of actor / critics (update them with
@@ -142,7 +131,6 @@ class DSACTLoss(LossModule):
         epsilon: float = 0.1,
         tau_b: float = 0.005,
         sample_clip: float = 3.0,
-        mean_weighting: str = "variance",
         reward_components: int = 1,
         actor_samples: int = 1,
         delay_actor: bool = True,
@@ -159,9 +147,6 @@ class DSACTLoss(LossModule):
             raise ValueError(f"got {len(qvalue_network)} critics for num_qvalue_nets={num_qvalue_nets}")
         self.convert_to_functional(qvalue_network, "qvalue_network", num_qvalue_nets, create_target_params=delay_qvalue)
         self.xi, self.epsilon, self.tau_b, self.sample_clip = xi, epsilon, tau_b, sample_clip
-        if mean_weighting not in ("variance", "uniform"):
-            raise ValueError(f"mean_weighting must be 'variance' or 'uniform', got {mean_weighting!r}")
-        self.mean_weighting = mean_weighting
         if int(actor_samples) < 1:
             raise ValueError(f"actor_samples must be >= 1, got {actor_samples}")
         self.actor_samples = int(actor_samples)
@@ -399,7 +384,7 @@ class DSACTLoss(LossModule):
             return x.movedim(-1, 1).flatten(2)
 
         flat = (per_term(mu), per_term(sigma), per_term(y_q.expand_as(mu)), per_term(y_b))
-        loss = critic_surrogate(*flat, sigma_bar, self.epsilon, self.mean_weighting).sum()
+        loss = critic_surrogate(*flat, sigma_bar, self.epsilon).sum()
         with torch.no_grad():
             err = y_q - mu
             nll = 0.5 * math.log(2 * math.pi) + sigma.log() + err.pow(2) / (2 * sigma.pow(2))

@@ -100,22 +100,6 @@ def test_surrogate_gradients_equal_closed_forms():
     torch.testing.assert_close(sigma.grad, -scale * ((m - y_b) ** 2 - s**2) / (s**3 + eps))
 
 
-def test_uniform_mean_weighting_is_least_squares_on_the_mean():
-    """mean_weighting="uniform": ∂L/∂μ = −(y_q − μ)/B for every σ (two critics, σ̄ per critic); σ's term unchanged."""
-    torch.manual_seed(2)
-    b, eps = 16, 0.1
-    mu = torch.randn(2, b, requires_grad=True)
-    sigma = (torch.rand(2, b) + 0.2).requires_grad_()
-    y_q, y_b, sigma_bar = torch.randn(2, b), torch.randn(2, b), torch.tensor([0.7, 1.3])
-    critic_surrogate(mu, sigma, y_q, y_b, sigma_bar, eps, "uniform").sum().backward()
-    m, s = mu.detach(), sigma.detach()
-    torch.testing.assert_close(mu.grad, -(y_q - m) / b)
-    scale = (sigma_bar**2 + eps).unsqueeze(-1) / b
-    torch.testing.assert_close(sigma.grad, -scale * ((m - y_b) ** 2 - s**2) / (s**3 + eps))
-    with pytest.raises(ValueError, match="mean_weighting"):
-        make_loss(mean_weighting="median")
-
-
 def test_surrogate_with_zero_epsilon_is_the_gaussian_nll_gradient():
     """ε = 0: ∂L/∂μ is the NLL gradient at y_q, ∂L/∂σ the NLL gradient at y_b, times σ̄²/B."""
     torch.manual_seed(1)

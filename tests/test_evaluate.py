@@ -1,22 +1,37 @@
-"""The evaluator: metrics against hand-computed values, and the main job end to end (tiny profile)."""
+"""The evaluator: metrics against hand-computed values, and Experiment I end to end (tiny profile),
+through the one experiment entry (``daof.experiments``) and its config's refusals."""
 
 import json
 import math
+import re
+import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
-from hydra.conf import HydraConf
-from hydra.core.hydra_config import HydraConfig
 from omegaconf import OmegaConf
 
-from daof.evaluate.experiment import command_line
 from daof.evaluate.metrics import count_diverged, paired_rmse_ratio, per_run_rmse, pooled_rmse
 from daof.evaluate.study import FilterResult, _add_oracle_metrics
+from daof.experiments.experiment import main, plan_experiment
+from daof.experiments.runner import command_line
 
 ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = "recipes/veh2dof/experiment.py"
+
+
+def experiment1(*args: str):
+    """What ``python recipes/veh2dof/experiment.py args...`` runs, in process."""
+    return main(list(args), experiment="veh2dof", program=SCRIPT)
+
+
+def same_jobs(a, b) -> bool:
+    """Two plans train the same filters with the same configs in the same directories."""
+    jobs = [{n: (j.output_dir, j.total_frames, j.requested_config) for n, j in sp.jobs.items()} for sp in (a, b)]
+    return jobs[0] == jobs[1]
 
 
 def test_pooled_and_per_run_rmse_by_hand():
@@ -78,13 +93,14 @@ def test_paired_rmse_ratio_by_hand():
         paired_rmse_ratio(filt, ref, level=1.0)
 
 
-def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
+def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
     """The main job (tiny profile: tiny nets, a handful of updates) runs every filter and writes
-    report.md, results.csv, results.json and every figure; a second run reuses everything."""
-    cmd = [sys.executable, str(ROOT / "recipes/veh2dof/experiment.py"), "profile=tiny", f"output_root={tmp_path}"]
-    first = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    report.md, results.csv, results.json and every figure; a second run reuses everything; the
+    command the report records plans the same run."""
+    args = ["profile=tiny", f"output_root={tmp_path}"]
     report = tmp_path / "report"
+    assert experiment1(*args) == [report / "report.md"]
+    assert f"report: {report / 'report.md'}" in capsys.readouterr().out
     for name in (
         "report.md",
         "results.csv",
@@ -104,20 +120,29 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
         assert row["cost_ms"] > 0 and row["throughput_per_s"] > 0
     assert results["filters"]["PF-oracle"]["ratio_to_oracle"] == [1.0, 1.0]
     assert [r["window"] for r in results["window_study"]] == [1, 20]
-    assert "| DAOF-v1 |" in (report / "report.md").read_text()
+    text = (report / "report.md").read_text()
+    assert "| DAOF-v1 |" in text and "## Sliding-window study (DAOF-v1)" in text
+    assert "## The paper's Table I, for context" in text and "Table II" not in text
+    assert "- PF-oracle uses 400 particles; with 800 its RMSE changes by" in text  # the convergence check
+    assert "- PF uses 200 particles." in text
     paired = results["paired_with"]
     assert paired["reference"] == "UKF" and set(paired["filters"]) == expected - {"UKF"}
     daof = paired["filters"]["DAOF-v1"]
     ukf, own = (torch.tensor(results["filters"][k]["rmse"]) for k in ("UKF", "DAOF-v1"))
     torch.testing.assert_close(torch.tensor(daof["ratio"], dtype=torch.float64), (own / ukf).double())
-    assert "## Paired with the UKF" in (report / "report.md").read_text()
+    assert "## Paired with the UKF" in text
+    # the command in the report plans this run again
+    command = shlex.split(results["command"])
+    assert command[:2] == ["python", SCRIPT] and "profile=tiny" in command and "scenario=nominal" in command
+    first, again = plan_experiment("veh2dof", args), plan_experiment("veh2dof", command[2:])
+    assert same_jobs(first.scenarios["nominal"], again.scenarios["nominal"])
 
     # again, with the dropout study: trainings and the main study are reused, the gappy one is new
     gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps
-    second = subprocess.run(cmd + gaps, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("finished earlier, reusing") == 4
-    assert second.stdout.count("reused finished result") == 9
+    experiment1(*args, *gaps)
+    out = capsys.readouterr().out
+    assert out.count("finished earlier, reusing") == 4
+    assert out.count("reused finished result") == 9  # 8 filters and the doubled PF-oracle
     gappy = json.loads((report / "dropout" / "results.json").read_text())
     assert set(gappy["filters"]) == expected and gappy["dropout"]["p"] == 0.1
     assert all(0.05 < m < 0.5 for m in gappy["dropout"]["missing_fraction"])
@@ -125,6 +150,7 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path):
         assert all(math.isfinite(v) for v in row["rmse"]), name
         assert row["rmse"] != results["filters"][name]["rmse"], name  # the gaps changed every filter's estimates
     assert "Sensor dropout" in (report / "dropout" / "report.md").read_text()
+    assert "dropout.enabled=true" in shlex.split(gappy["command"])
 
 
 def test_study_cache_is_reused_only_for_the_same_filter_version(tmp_path):
@@ -156,7 +182,7 @@ def test_classical_filters_are_cached_under_their_code_and_settings():
     """Two filters built alike share a fingerprint; another particle count or seed gets its own."""
     from daof.envs import make_system
 
-    from daof.evaluate.experiment import classical_fingerprint
+    from daof.experiments.runner import classical_fingerprint
     from daof.filters import UKF, ParticleFilter
 
     system = make_system("veh2dof")
@@ -170,9 +196,14 @@ def test_classical_filters_are_cached_under_their_code_and_settings():
 # ----------------------------------------------------------------------------- scenarios side by side
 def _small_study(system):
     from daof.evaluate import run_study
-    from daof.evaluate.experiment import classical_filters
+    from daof.experiments.config import compose_experiment, for_scenario
+    from daof.experiments.experiment import classical_filters, reference_of
 
-    filters, reference = classical_filters(system, 100, 300)  # the recipe's filters, with fewer particles
+    # Experiment I's classical filters, with fewer particles
+    particles = "profiles.tiny.particles={PF: 100, PF-oracle: 300, PF-joint: 300}"
+    cfg = for_scenario(compose_experiment("veh2dof", ["profile=tiny", particles]), system.scenario)
+    filters = classical_filters(cfg, cfg.profiles["tiny"], system)
+    reference = reference_of(cfg, filters)
     return run_study(system, filters, 2, 30, 20261122, measure_cost=False, log=lambda _: None, reference=reference)
 
 
@@ -244,44 +275,26 @@ def test_a_non_finite_filter_never_wins_a_scenario():
     assert w["score"]["bad"] is None
 
 
-def _experiment1():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("experiment1", ROOT / "recipes/veh2dof/experiment.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def _experiment1_cfg(*overrides):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(ROOT / "recipes/veh2dof"), version_base="1.3"):
-        return compose(config_name="experiment", overrides=list(overrides))
-
-
 def test_each_scenario_trains_on_its_own_data_in_its_own_directory(tmp_path):
-    recipe = _experiment1()
-    cfg = _experiment1_cfg("profile=tiny", f"root={tmp_path}", "scenarios=[nominal,mismatch,outliers]")
-    assert list(cfg.scenarios) == ["nominal", "mismatch", "outliers"]
+    plan = plan_experiment("veh2dof", ["profile=tiny", f"root={tmp_path}", "scenarios=[nominal,mismatch,outliers]"])
+    assert list(plan.scenarios) == ["nominal", "mismatch", "outliers"]
     dirs = set()
-    for sc in cfg.scenarios:
-        c = recipe.scenario_config(cfg, sc)
-        assert Path(c.output_root) == tmp_path / sc and Path(c.report_dir) == tmp_path / sc / "report"
-        jobs = recipe.training_jobs(c, cfg.profiles.tiny, Path(c.output_root), f" [{sc}]")
-        assert list(jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)"]
-        for name, job in jobs.items():
+    for sc, sp in plan.scenarios.items():
+        assert Path(sp.cfg.output_root) == tmp_path / sc and Path(sp.cfg.report_dir) == tmp_path / sc / "report"
+        assert list(sp.jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)"]
+        assert sp.windows == {"SLF": 20, "DAOF-v2": 20, "DAOF-v1": 20, "DAOF-v1 (N=1)": 1}
+        for name, job in sp.jobs.items():
             assert f"scenario={sc}" in job.overrides and job.name == f"{name} [{sc}]"
-            assert f"window={recipe.job_window(name)}" in job.overrides
+            assert f"window={sp.windows[name]}" in job.overrides
+            assert job.requested_config["scenario"] == sc
             dirs.add(job.output_dir)
-    assert len(dirs) == 12 and Path(cfg.combined_report_dir) == tmp_path / "report"
+    assert len(dirs) == 12 and Path(plan.cfg.combined_report_dir) == tmp_path / "report"
     # the default is one scenario, in the directory the README names
-    single = _experiment1_cfg()
-    assert list(single.scenarios) == ["nominal"] and single.report_dir == "runs/experiment1/quick/nominal/report"
+    single = plan_experiment("veh2dof", [])
+    assert list(single.scenarios) == ["nominal"] and single.cfg.report_dir == "runs/experiment1/quick/nominal/report"
     # several scenarios cannot share one output_root
-    clash = _experiment1_cfg("profile=tiny", f"output_root={tmp_path}", "scenarios=[nominal,mismatch]")
     with pytest.raises(SystemExit, match="would share the output directory .* set root=DIR"):
-        recipe.main(clash)
+        experiment1("profile=tiny", f"output_root={tmp_path}", "scenarios=[nominal,mismatch]")
     assert not list(tmp_path.iterdir())
 
 
@@ -293,27 +306,16 @@ def test_each_scenario_trains_on_its_own_data_in_its_own_directory(tmp_path):
     ],
 )
 def test_experiment1_bad_scenario_or_profile_exits_with_one_line(tmp_path, override, message):
-    cmd = [sys.executable, str(ROOT / "recipes/veh2dof/experiment.py"), override, f"root={tmp_path}"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert done.returncode != 0
-    assert done.stderr.strip().splitlines() == [message], done.stderr
-    assert "Traceback" not in done.stdout + done.stderr
-    assert not list(tmp_path.glob("*/*-N*")), "nothing trains on a bad input"
+    with pytest.raises(SystemExit) as error:
+        experiment1(override, f"root={tmp_path}")
+    assert str(error.value) == message
+    assert not list(tmp_path.iterdir()), "nothing trains on a bad input"
 
 
 @pytest.mark.slow
-def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
+def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path, capsys):
     """Two scenarios at the tiny profile (one window): per-scenario reports and the combined one."""
-    cmd = [
-        sys.executable,
-        str(ROOT / "recipes/veh2dof/experiment.py"),
-        "profile=tiny",
-        f"root={tmp_path}",
-        "scenarios=[nominal,mismatch]",
-        "profiles.tiny.windows=[20]",
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    experiment1("profile=tiny", f"root={tmp_path}", "scenarios=[nominal,mismatch]", "profiles.tiny.windows=[20]")
     for sc in ("nominal", "mismatch"):
         results = json.loads((tmp_path / sc / "report" / "results.json").read_text())
         assert results["scenario"] == sc and set(results["filters"]) >= {"EKF", "PF-oracle", "SLF", "DAOF-v1"}
@@ -321,7 +323,113 @@ def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path):
         assert results["reference"] == ("PF-joint" if sc == "mismatch" else "PF-oracle")
     combined = json.loads((tmp_path / "report" / "results.json").read_text())
     assert combined["scenarios"] == ["nominal", "mismatch"] and set(combined["winners"]) == {"nominal", "mismatch"}
-    assert f"combined report: {tmp_path / 'report' / 'report.md'}" in done.stdout
+    assert f"combined report: {tmp_path / 'report' / 'report.md'}" in capsys.readouterr().out
+
+
+def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path):
+    """As a user runs them: the README's recipe script and the shared entry, a bad profile each."""
+    for cmd in (
+        [sys.executable, SCRIPT, "profile=huge", f"root={tmp_path}"],
+        [sys.executable, "-m", "daof.experiments", "experiment=linear", "profile=huge", f"root={tmp_path}"],
+    ):
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+        assert done.returncode != 0
+        assert done.stderr.strip().splitlines() == ["unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"]
+        assert "Traceback" not in done.stdout + done.stderr
+    assert not list(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------- the experiment config's refusals
+@pytest.mark.parametrize(
+    ("experiment", "overrides", "message"),
+    [
+        ("veh3dof", [], "unknown experiment 'veh3dof'; valid: linear, veh14dof, veh2dof"),
+        ("veh2dof", ["windw=4"], "unknown experiment key 'windw'; did you mean 'window'?"),
+        ("veh2dof", ["profiles.tiny.run=3"], "unknown experiment key 'profiles.tiny.run'; did you mean 'runs'?"),
+        ("veh2dof", ["dropout.enable=true"], "unknown experiment key 'dropout.enable'; did you mean 'enabled'?"),
+        ("veh2dof", ["learned.SLF.filtr=slf"], "unknown experiment key 'learned.SLF.filtr'; did you mean 'filter'?"),
+        ("veh2dof", ["seed"], "override 'seed' is not key=value"),
+        ("veh2dof", ["window=abc"], "window=abc.*could not be converted to Integer"),
+        ("veh2dof", ["profiles.tiny.runs=lots"], "profiles.tiny.runs=lots.*could not be converted to Integer"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.runs=0"], "profiles.tiny.runs must be >= 1, got 0"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.steps=-5"], "profiles.tiny.steps must be >= 1, got -5"),
+        ("veh2dof", ["window=0"], "window must be >= 1, got 0"),
+        ("veh2dof", ["parallel_jobs=0"], "parallel_jobs must be >= 1, got 0"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[]"], "profiles.tiny.windows is empty: the window study"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[1,0]"], "profiles.tiny.windows must be >= 1, got 0"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[5,5]"], "names a window more than once"),
+        ("veh2dof", ["scenarios=[]"], "scenarios must be one or more scenario names of veh2dof, got \\[\\]"),
+        ("veh2dof", ["scenarios=[nominal,nominal]"], "scenarios \\['nominal', 'nominal'\\] name a scenario more"),
+        ("linear", ["scenario=mismatch"], "unknown scenario 'mismatch' for linear; valid: \\['nominal'\\]"),
+        ("veh2dof", ["learned.SLF.filter=ukf"], "learned.SLF.filter='ukf' is not valid; valid: \\['daof_v1'"),
+        ("veh2dof", ["+profiles.tiny.frames.SFL=10", "profile=tiny"], "profiles.tiny.frames \\['SFL'\\] is not"),
+        ("veh2dof", ["profile=tiny", "profiles.tiny.frames.SLF=0"], "profiles.tiny.frames.SLF must be >= 1, got 0"),
+        ("veh2dof", ["profile=tiny", "~profiles.tiny.particles.PF"], "profiles.tiny.particles has no particle count"),
+        ("veh2dof", ["classical.EKF.filter=EnKF"], "classical.EKF.filter='EnKF' is not valid"),
+        ("veh2dof", ["classical.PF-joint.scenarios=[icy]"], "classical.PF-joint.scenarios \\['icy'\\] is not"),
+        ("veh2dof", ["reference=[KF]"], "reference \\['KF'\\] is not filters of the study"),
+        ("veh2dof", ["report.paired_with=KF"], "report.paired_with \\['KF'\\] is not a filter of the study"),
+        ("veh2dof", ["report.paper_table=III"], "report.paper_table \\['III'\\] is not a paper table"),
+        ("veh2dof", ["convergence_check.filter=UKF"], "convergence_check.filter \\['UKF'\\] is not a particle"),
+        ("veh2dof", ["dropout.p=1.5"], "dropout.p must be in \\[0, 1\\], got 1.5"),
+        ("veh2dof", ["profile=tiny", "dropout.enabled=true"], "dropout: blackout \\[4.0, 5.0\\) s does not fit in 60"),
+        ("veh2dof", ["dropout.enabled=true", "dropout.blackout=[wheel,1,1]"], "dropout: blackout channel 'wheel'"),
+        ("veh2dof", ['notes=["{nope}"]'], "uses unknown field\\(s\\) \\['nope'\\]"),
+        ("veh2dof", ["profile=tiny", 'profiles.tiny.overrides.SLF=["optim.lrr=1"]'], "SLF: unknown config key"),
+        ("linear", ["requirements.DAOF-v1.tolerance=0"], "requirements.DAOF-v1.tolerance must be > 0, got 0.0"),
+        ("linear", ["reference=[]"], "requirements.DAOF-v1 is relative to the study's reference, but reference is"),
+        ("veh14dof", ["+profiles.quick.system.hh=1"], "unknown parameter\\(s\\) \\['hh'\\] for veh14dof"),
+        ("veh2dof", ["~learned.SLF"], "profiles.quick.frames \\['SLF'\\] is not learned rows"),
+    ],
+)
+def test_the_experiment_config_refuses_bad_input_in_one_line(tmp_path, experiment, overrides, message):
+    """Unknown experiments and keys (with the nearest key), wrong types and impossible values: one
+    line each, from planning alone (``main`` exits with it before any work; nothing is written)."""
+    with pytest.raises(ValueError) as error:
+        plan_experiment(experiment, [f"root={tmp_path}", *overrides])
+    text = str(error.value)
+    assert "\n" not in text and text.strip(), text
+    assert re.search(message, text), text
+    assert not list(tmp_path.iterdir())
+
+
+def test_what_the_command_line_cannot_break_is_checked_too():
+    """Impossible experiments a YAML file could describe: classical filters on a system without a
+    model, or no filter at all."""
+    from daof.experiments.config import ClassicalFilter, check_experiment, compose_experiment, for_scenario
+
+    cfg = for_scenario(compose_experiment("veh14dof"), "nominal")
+    cfg.classical["EKF"] = ClassicalFilter(filter="EKF")
+    with pytest.raises(ValueError, match="^veh14dof has no model for filters: the classical filters \\['EKF'\\]"):
+        check_experiment(cfg)
+    cfg.classical.clear()
+    cfg.learned.clear()
+    cfg.profiles["quick"].frames.clear()
+    cfg.profiles["quick"].overrides.clear()
+    with pytest.raises(ValueError, match="^the experiment has no filters"):
+        check_experiment(cfg)
+
+
+def test_the_entry_wants_one_experiment():
+    with pytest.raises(SystemExit, match="^give one experiment=NAME; valid: linear, veh14dof, veh2dof$"):
+        main([])
+    with pytest.raises(SystemExit, match="^recipes/veh2dof/experiment.py runs experiment=veh2dof; leave out"):
+        experiment1("experiment=linear")
+
+
+def test_every_experiment_and_profile_plans():
+    """Each shipped experiment, at each profile, composes, passes its checks and plans its trainings."""
+    for name, rows in (
+        ("veh2dof", {"SLF", "DAOF-v2", "DAOF-v1"}),
+        ("linear", {"DAOF-v1", "DAOF-v2"}),
+        ("veh14dof", {"SLF", "DAOF-v2"}),
+    ):
+        for profile in ("tiny", "quick", "paper"):
+            plan = plan_experiment(name, [f"profile={profile}"])
+            (sp,) = plan.scenarios.values()
+            assert rows <= set(sp.jobs), (name, profile)
+            command = f"python -m daof.experiments experiment={name} profile={profile}"
+            assert plan.command(f"profile={profile}") == command
 
 
 # ----------------------------------------------------------------------------- bad inputs, one line each
@@ -329,14 +437,14 @@ def test_stale_or_missing_checkpoints_exit_with_one_line(tmp_path):
     """A checkpoint of another system, scenario or window in a job's directory, or none at all."""
     from daof.envs import make_system
 
-    from daof.evaluate.experiment import load_trained
-    from daof.evaluate.jobs import TrainingJob
+    from daof.experiments.jobs import TrainingJob
+    from daof.experiments.runner import load_trained
     from daof.filters.learned import FilterConfig, LearnedFilter
 
     LearnedFilter(FilterConfig(kind="DAOF-v2", system="veh2dof", window=4, num_cells=8)).save(
         tmp_path / "v" / "best.pt"
     )
-    job = TrainingJob("DAOF-v2", Path("train_daof.py"), tmp_path / "v", 100)
+    job = TrainingJob("DAOF-v2", tmp_path / "v", 100)
     system = make_system("veh2dof")
     assert load_trained({"DAOF-v2": job}, system, {"system": "veh2dof", "window": 4})["DAOF-v2"].config.window == 4
     cases = [
@@ -350,80 +458,75 @@ def test_stale_or_missing_checkpoints_exit_with_one_line(tmp_path):
         ) as error:
             load_trained({"DAOF-v2": job}, system, lambda name, e=expect: e)
         assert "\n" not in str(error.value)
-    missing = TrainingJob("SLF", Path("train_slf.py"), tmp_path / "none", 100)
+    missing = TrainingJob("SLF", tmp_path / "none", 100)
     with pytest.raises(SystemExit, match="^SLF: no filter checkpoint at .*none/best.pt"):
         load_trained({"SLF": missing}, system, {"system": "veh2dof"})
 
 
 def test_a_run_of_another_config_is_set_aside_not_reused(tmp_path):
-    """A finished run is reused only if its run_config.json is the config the job asks for now."""
-    from daof.evaluate.jobs import TrainingJob
-    from daof.train.checkpoint import RUN_CONFIG
+    """A finished run is reused only if its run_config.json is the config the job asks for now
+    (apart from its budget and where it lives: a moved results root is still reused)."""
+    from daof.experiments.jobs import TrainingJob
+    from daof.train.base import RUN_CONFIG
 
-    script = ROOT / "recipes" / "veh2dof" / "train_slf.py"
-    job = TrainingJob("SLF", script, tmp_path / "slf", 100, ["window=4"])
+    job = TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf", "window=4"])
     job.output_dir.mkdir()
     (job.output_dir / "summary.json").write_text(json.dumps({"frames": 100}))
     (job.output_dir / "best.pt").write_bytes(b"")
     assert not job.finished()  # no record of its config: not trusted
     (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config))
     assert job.finished() and job.set_aside_if_stale() is None
-    assert TrainingJob("SLF", script, job.output_dir, 50, ["window=4"]).finished()  # the budget may differ
-    changed = TrainingJob("SLF", script, job.output_dir, 100, ["window=4", "optim.lr=1e-3"])
+    assert TrainingJob("SLF", job.output_dir, 50, ["filter=slf", "window=4"]).finished()  # the budget may differ
+    moved = tmp_path / "moved"
+    shutil.copytree(job.output_dir, moved)
+    assert TrainingJob("SLF", moved, 100, ["filter=slf", "window=4"]).finished()  # so may the directory
+    changed = TrainingJob("SLF", job.output_dir, 100, ["filter=slf", "window=4", "optim.lr=1e-3"])
     assert not changed.finished()
     assert changed.set_aside_if_stale() == tmp_path / "slf.stale-1"
     assert (tmp_path / "slf.stale-1" / RUN_CONFIG).is_file() and not job.output_dir.exists()
 
 
 def test_a_failed_training_exits_with_one_line(tmp_path):
-    from daof.evaluate.experiment import train
-    from daof.evaluate.jobs import TrainingJob
+    from daof.experiments.jobs import TrainingJob
+    from daof.experiments.runner import train
 
-    # a recipe that rejects the job's config fails before anything is launched, with its reason
-    script = tmp_path / "broken.py"
-    script.write_text("import sys\nprint('bad override')\nsys.exit(2)\n")
-    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    # a job whose config is refused fails before anything is launched, with the reason
+    job = TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf", "windw=4"])
     with pytest.raises(SystemExit) as error:
         train([job], parallel=1, log=lambda _: None)
-    assert str(error.value) == f"SLF: {script} rejects its overrides: bad override"
+    assert str(error.value).startswith("SLF: unknown config key 'windw'; did you mean 'window'?")
     # a training that crashes: one line naming it, and the log it points to holds the cause
     script = tmp_path / "crashing.py"
-    script.write_text(
-        "import sys\nif '--cfg' in sys.argv:\n    print('{}'); sys.exit(0)\nprint('out of memory')\nsys.exit(3)\n"
-    )
-    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    script.write_text("import sys\nprint('out of memory')\nsys.exit(3)\n")
+    job = TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf"], launcher=[sys.executable, str(script)])
     with pytest.raises(SystemExit) as error:
         train([job], parallel=1, log=lambda _: None)
     assert str(error.value) == "training failed for ['SLF']; rerun the same command to resume"
     assert "out of memory" in (tmp_path / "slf" / "train.log").read_text()
 
 
-def test_a_recipe_config_edited_during_a_run_does_not_fail_it(tmp_path):
-    """The config a job asks for is pinned when the run starts: a training that finishes after its
-    recipe file was edited (a new option added, say) is done, and a rerun sets it aside."""
-    from daof.evaluate.experiment import train
-    from daof.evaluate.jobs import TrainingJob
-    from daof.train.checkpoint import RUN_CONFIG
+def test_the_config_a_job_asks_for_is_pinned_when_it_starts(tmp_path, monkeypatch):
+    """A training that finishes after its configuration files were edited is done; a rerun sets it aside."""
+    import daof.experiments.jobs as jobs
+    from daof.experiments.runner import train
+    from daof.train.base import RUN_CONFIG
 
-    recipe = tmp_path / "recipe.json"
-    recipe.write_text(json.dumps({"lr": 1}))
     script = tmp_path / "train.py"
     script.write_text(
         "import json, sys, pathlib\n"
-        f"recipe = pathlib.Path({str(recipe)!r})\n"
-        "if '--cfg' in sys.argv:\n"
-        "    print(recipe.read_text()); sys.exit(0)\n"
         "out = pathlib.Path([a for a in sys.argv if a.startswith('output_dir=')][0].split('=', 1)[1])\n"
-        f"(out / {RUN_CONFIG!r}).write_text(recipe.read_text())\n"
+        f"(out / {RUN_CONFIG!r}).write_text(pathlib.Path({str(tmp_path / 'pinned.json')!r}).read_text())\n"
         "(out / 'summary.json').write_text(json.dumps({'frames': 100})); (out / 'best.pt').write_bytes(b'')\n"
-        "recipe.write_text(json.dumps({'lr': 1, 'new_option': 0}))  # edited while the run is going\n"
     )
-    job = TrainingJob("SLF", script, tmp_path / "slf", 100)
+    job = jobs.TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf"], launcher=[sys.executable, str(script)])
+    (tmp_path / "pinned.json").write_text(json.dumps(job.requested_config))
+    edited = OmegaConf.create({**job.requested_config, "window": 7})
+    monkeypatch.setattr(jobs, "compose_config", lambda overrides: edited)  # the files change during the run
     lines = []
     train([job], parallel=1, log=lines.append)
     assert any("SLF: done" in line for line in lines), lines
-    again = TrainingJob("SLF", script, tmp_path / "slf", 100)
-    assert not again.finished()  # the recipe now asks for another config
+    again = jobs.TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf"])
+    assert not again.finished()  # the configuration now asks for another run
 
 
 @pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "SLF"])
@@ -444,7 +547,7 @@ def test_learned_filters_reject_bad_input_with_one_line(kind, veh):
 
 def test_learning_curves_come_from_the_whole_run_not_only_up_to_the_best_checkpoint(tmp_path):
     """best.pt holds the validation history only up to the best; the curve is read from final.pt beside it."""
-    from daof.evaluate.experiment import learning_curves
+    from daof.experiments.runner import learning_curves
     from daof.filters.learned import FilterConfig, LearnedFilter, load_filter
 
     f = LearnedFilter(FilterConfig(kind="DAOF-v1", system="veh2dof", window=2, num_cells=8))
@@ -460,7 +563,7 @@ def test_learning_curve_references_are_the_validation_set_numbers_of_the_run(tmp
     """The lines beside the curves come from the run's summary.json (its validation set), not the study's data."""
     import json
 
-    from daof.evaluate.experiment import validation_references
+    from daof.experiments.runner import validation_references
     from daof.filters.learned import FilterConfig, LearnedFilter, load_filter
 
     f = LearnedFilter(FilterConfig(kind="DAOF-v1", system="veh2dof", window=2, num_cells=8))
@@ -475,18 +578,12 @@ def test_learning_curve_references_are_the_validation_set_numbers_of_the_run(tmp
 
 def test_a_reports_command_line_keeps_every_override_given():
     """The command written into a report reproduces it: pinned arguments first, then every other
-    override of the Hydra command line (quoted for a shell), a dropped key left out."""
-    given = ["profile=paper", "profiles.paper.daof_frames=3200000", "scenarios=[a,b]", "+x=1"]
-    hydra = OmegaConf.structured(HydraConf)
-    hydra.overrides.task = given
-    HydraConfig.instance().set_config(OmegaConf.create({"hydra": hydra}))
-    try:
-        assert command_line("s.py", "profile=paper", "scenario=a", drop=["scenarios"]) == (
-            "python s.py profile=paper scenario=a profiles.paper.daof_frames=3200000 +x=1"
-        )
-        assert command_line("s.py", "profile=paper") == (
-            "python s.py profile=paper profiles.paper.daof_frames=3200000 'scenarios=[a,b]' +x=1"
-        )
-    finally:
-        HydraConfig.instance().cfg = None
-    assert command_line("s.py", "profile=quick") == "python s.py profile=quick"  # outside Hydra
+    override given (quoted for a shell), a dropped key left out."""
+    given = ["profile=paper", "profiles.paper.frames.DAOF-v1=3200000", "scenarios=[a,b]", "+x=1"]
+    assert command_line("s.py", "profile=paper", "scenario=a", given=given, drop=["scenarios"]) == (
+        "python s.py profile=paper scenario=a profiles.paper.frames.DAOF-v1=3200000 +x=1"
+    )
+    assert command_line("s.py", "profile=paper", given=given) == (
+        "python s.py profile=paper profiles.paper.frames.DAOF-v1=3200000 'scenarios=[a,b]' +x=1"
+    )
+    assert command_line("s.py", "profile=quick") == "python s.py profile=quick"

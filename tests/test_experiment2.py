@@ -1,50 +1,33 @@
-"""Experiment II (recipes/veh14dof): the pipeline writes a complete Table II report.
+"""Experiment II (experiment=veh14dof, recipes/veh14dof/experiment.py): a complete Table II report.
 
-The fast test runs the recipe's own pieces in process (its training jobs' configs and overrides,
-the shared trainers, ``study_and_report``) at the tiny profile; the slow one runs the script end
-to end twice (the second run reuses every training and study result).
+The fast test runs the experiment's own pieces in process at the tiny profile (its planned training
+jobs, the shared trainers, ``run_scenario``); the slow one runs the entry end to end twice (the
+trainings as subprocesses; the second run reuses every training and study result).
 """
 
-import importlib.util
 import json
 import math
-import subprocess
-import sys
+import shlex
 import time
 from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
-from daof.train.dsac import DSACTTrainer
-from daof.train.supervised import SLFTrainer
+from daof.experiments.experiment import main, plan_experiment, run_scenario
+from daof.train.__main__ import train
+from daof.train.config import compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
-RECIPE = ROOT / "recipes" / "veh14dof"
+SCRIPT = "recipes/veh14dof/experiment.py"
 STATES = ["pitch", "roll", "yaw_rate", "side_slip", "vx", "ax"]
 UNITS = ["deg", "deg", "deg/s", "deg", "km/h", "g"]
-ROWS = {"SLF", "DAOF-v2"}  # experiment.yaml: SLF and v2_rows
+ROWS = {"SLF", "DAOF-v2"}  # daof/conf/experiment/veh14dof.yaml: learned
 FIGURES = [f"run0_{s}.png" for s in STATES] + ["per_run_rmse_box.png", "learning_curves.png"]
 
 
-def _recipe():
-    spec = importlib.util.spec_from_file_location("experiment2", RECIPE / "experiment.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _train_in_process(job) -> None:
-    """What run_jobs would start as a subprocess: the job's config name and Hydra overrides."""
-    args = list(job.overrides)
-    name = args[args.index("--config-name") + 1]
-    overrides = [a for a in args if not a.startswith("--") and a not in (str(RECIPE), name)]
-    overrides += [f"collector.total_frames={job.total_frames}", f"output_dir={job.output_dir}"]
-    with initialize_config_dir(config_dir=str(RECIPE), version_base="1.3"):
-        cfg = compose(config_name=name, overrides=overrides)
-    trainer = (SLFTrainer if name == "slf" else DSACTTrainer)(cfg)
-    trainer.train()
+    """What run_jobs would start as a subprocess: python -m daof.train with the job's arguments."""
+    train(compose_config(job.arguments))
     assert job.finished(), job.name
 
 
@@ -56,6 +39,7 @@ def _check_report(report: Path, runs: int) -> dict:
     assert results["states"] == STATES and results["units"] == UNITS
     assert results["si_units"] == ["rad", "rad", "rad/s", "rad", "m/s", "m/s^2"]
     assert set(results["filters"]) == ROWS  # model-free only: no EKF / UKF / PF / PF-oracle
+    assert results["reference"] is None
     for name, row in results["filters"].items():
         assert len(row["rmse"]) == 6 and all(math.isfinite(v) for v in row["rmse"]), name
         assert len(row["per_run_rmse"]) == runs
@@ -66,56 +50,51 @@ def _check_report(report: Path, runs: int) -> dict:
     header = "| filter | " + " | ".join(f"RMSE {s} [{u}]" for s, u in zip(STATES, UNITS))
     assert header in text and "ratio to PF-oracle" not in text
     assert "| SLF |" in text and "| DAOF-v2 |" in text and "Table II, for context" in text
+    assert "Same network size and input window for both learned filters (SLF: 3 × 16 GELU, N = 20; DAOF-v2" in text
+    assert "System parameters of this profile: {'h': 0.01}" in text
     csv_head = (report / "results.csv").read_text().splitlines()[0]
     assert csv_head.startswith("filter,rmse_pitch [deg],rmse_roll [deg],rmse_yaw_rate [deg/s]")
     return results
 
 
-def test_pipeline_writes_table2_report_in_paper_units(tmp_path):
-    """Tiny profile in process: both trainings (recipe configs + the experiment's overrides), the
+def test_pipeline_writes_table2_report_in_paper_units(tmp_path, capsys):
+    """Tiny profile in process: both trainings (the training configs + the experiment's overrides), the
     study and the report; RMSEs are reported in deg, deg/s, km/h and g (SI × report_scale)."""
-    recipe = _recipe()
-    with initialize_config_dir(config_dir=str(RECIPE), version_base="1.3"):
-        cfg = compose(
-            config_name="experiment",
-            overrides=["profile=tiny", f"output_root={tmp_path}", f"cache_dir={tmp_path / 'cache'}"],
-        )
-    p = cfg.profiles.tiny
-    jobs = recipe.training_jobs(cfg, p, tmp_path)
-    # the DAOF-v2 row trains with its own form, in its own directory
-    assert "network.critic_form=reward_quadratic" in jobs["DAOF-v2"].overrides
-    assert not any("v2_action" in a for a in jobs["DAOF-v2"].overrides)  # the paper's x̂ = π(h)
-    assert "collector.feedback=mean" in jobs["DAOF-v2"].overrides  # fed back as at run time
-    assert len({job.output_dir for job in jobs.values()}) == len(ROWS)
+    plan = plan_experiment("veh14dof", ["profile=tiny", f"output_root={tmp_path}", f"cache_dir={tmp_path / 'cache'}"])
+    sp = plan.scenarios["nominal"]
+    jobs = sp.jobs
+    assert list(jobs) == ["SLF", "DAOF-v2"] and len({job.output_dir for job in jobs.values()}) == len(ROWS)
+    v2 = jobs["DAOF-v2"].requested_config
+    # DAOF-v2 trains with veh14dof's own form (daof/conf/tuning/veh14dof_daof_v2.yaml), in its own directory
+    assert v2["network"]["critic_form"] == "reward_quadratic" and v2["network"]["v2_action"] == "estimate"
+    assert v2["collector"]["feedback"] == "mean" and jobs["DAOF-v2"].output_dir == tmp_path / "daof-v2-rs-N20"
+    # from the profile's bank, in the experiment's cache; both trainings on the profile's system
+    assert v2["overrides"]["replay"] == {**v2["overrides"]["replay"], "runs": 8, "cache_dir": str(tmp_path / "cache")}
+    assert v2["overrides"]["h"] == jobs["SLF"].requested_config["overrides"]["h"] == 0.01
     for job in jobs.values():
         _train_in_process(job)
-    report = recipe.study_and_report(cfg, p, jobs, time.perf_counter())
-    results = _check_report(report.parent, runs=int(p.runs))
+    _, report = run_scenario(plan, sp, time.perf_counter())
+    results = _check_report(report.parent, runs=int(sp.profile.runs))
+    assert "DAOF-v2 (DSAC-T) learned from a bank of 8 simulated episodes" in report.read_text()
     # the SI RMSE of the cached study result times the scale is what the report shows
     study_file = tmp_path / "study" / "SLF.pt"
     si = torch.tensor(torch.load(study_file, weights_only=False)["result"]["rmse"], dtype=torch.float64)
     shown = torch.tensor(results["filters"]["SLF"]["rmse"], dtype=torch.float64)
     torch.testing.assert_close(shown, si * torch.tensor(results["unit_scale"], dtype=torch.float64))
     # the DAOF-v2 run learned from the replayed bank of the profile's size
-    assert list((tmp_path / "cache").glob(f"veh14dof-nominal-r{p.bank_runs}-t101-s1-*.pt"))
+    assert list((tmp_path / "cache").glob("veh14dof-nominal-r8-t101-s1-*.pt"))
 
 
 @pytest.mark.slow
-def test_experiment2_tiny_profile_end_to_end(tmp_path):
-    """The script as a user runs it (subprocess trainings); a second run reuses everything."""
-    cmd = [
-        sys.executable,
-        str(RECIPE / "experiment.py"),
-        "profile=tiny",
-        f"output_root={tmp_path}",
-        f"cache_dir={tmp_path / 'cache'}",
-    ]
-    first = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+def test_experiment2_tiny_profile_end_to_end(tmp_path, capsys):
+    """The entry as a user runs it (subprocess trainings); a second run reuses everything."""
+    args = ["profile=tiny", f"output_root={tmp_path}", f"cache_dir={tmp_path / 'cache'}"]
+    main(args, experiment="veh14dof", program=SCRIPT)
     _check_report(tmp_path / "report", runs=3)
     command = json.loads((tmp_path / "report" / "results.json").read_text())["command"]
-    assert command == " ".join(["python recipes/veh14dof/experiment.py", *cmd[2:]])  # every override, as given
-    second = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT)
-    assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("finished earlier, reusing") == len(ROWS)
-    assert second.stdout.count("reused finished result") == len(ROWS)
+    assert shlex.split(command) == ["python", SCRIPT, "profile=tiny", "scenario=nominal", *args[1:]]
+    capsys.readouterr()
+    main(args, experiment="veh14dof", program=SCRIPT)
+    out = capsys.readouterr().out
+    assert out.count("finished earlier, reusing") == len(ROWS)
+    assert out.count("reused finished result") == len(ROWS)

@@ -12,11 +12,9 @@ from daof.envs import make_system
 from daof.envs.filtering_env import FilteringEnv
 from daof.envs.gaps import MISSING_KEY, GappySystem
 from daof.envs.history import with_window
-from test_training import tiny_cfg
 from torchrl.envs.utils import check_env_specs
 
 from daof.filters.learned import FilterConfig, LearnedFilter
-from daof.train.dsac import DSACTTrainer
 
 
 def gappy_env(p_max=0.3, blackout_s=0.2, window=4, steps=15, seed=11, flags=True):
@@ -58,19 +56,6 @@ def test_a_flagged_daof_v2_filters_the_gaps_offline_as_in_the_env():
     data.rename_key_("true_state", "state")
     assert torch.isnan(data["measurement"]).any()
     torch.testing.assert_close(f.run(data), rollout["action"], rtol=0, atol=0)
-
-
-def test_dsac_trains_a_flagged_daof_v2_through_gaps(tmp_path):
-    cfg = tiny_cfg(
-        "config.yaml",
-        tmp_path,
-        **{"version": "v2", "collector.total_frames": 300, "network.missing_mask": True, "dropout.p_max": 0.2},
-    )
-    trainer = DSACTTrainer(cfg)
-    assert isinstance(trainer.base_env.system, GappySystem)
-    summary = trainer.train()
-    assert summary["frames"] >= 300
-    assert torch.load(tmp_path / "best.pt", weights_only=False)["config"]["missing_mask"] is True
 
 
 def test_bad_gap_options_fail_clearly():

@@ -1,27 +1,56 @@
-"""Learned filters: closed-loop ``run`` equals an env rollout, checkpoints, bounds, bad input."""
+"""Learned filters: one class per kind, closed-loop ``run`` equals an env rollout (and a
+TensorDictSequential and a Collector), the fast path equals the network, checkpoints, bounds, bad input."""
+
+import os
+import pickle
+import re
 
 import pytest
 import torch
 from daof.envs import make_env, make_system
 from daof.envs.filtering_env import FEEDBACK_KEY
+from daof.envs.history import FrameLayout
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torchrl.collectors import Collector
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from daof.filters.learned import (
     SCHEDULE_STEPS,
+    SLF,
+    DAOFv1,
+    DAOFv2,
+    DAOFv2Increment,
     FilterConfig,
     LearnedFilter,
+    UpdateFilter,
     hold_last_value,
     load_filter,
+    make_filter,
     sliding_windows,
     startup_feature,
 )
+from daof.train.checkpoint import atomic_save, capture_rng
+from daof.train.policies import exploration_policy
 from daof.train.schedules import ukf_schedule
+
+#: every filter class: kind and the config fields that pick it
+FORMS = {
+    "DAOF-v1": ("DAOF-v1", {}),
+    "DAOF-v2": ("DAOF-v2", {}),
+    "DAOF-v2-increment": ("DAOF-v2", {"v2_action": "increment"}),
+    "SLF": ("SLF", {}),
+}
 
 
 def small(kind, window=4, system="veh2dof", **config):
-    f = LearnedFilter(FilterConfig(kind=kind, system=system, window=window, num_cells=16, **config))
+    f = make_filter(kind, system=system, window=window, num_cells=16, **config)
     f.fit_normalizer(runs=4, steps=50)
     return f.eval()
+
+
+def small_form(form, **config):
+    kind, fields = FORMS[form]
+    return small(kind, **fields, **config)
 
 
 @pytest.mark.parametrize("padding", ["same", "zeros"])
@@ -51,7 +80,7 @@ def test_exploration_policy_deterministic_mode_is_the_filter():
     f = small("DAOF-v1")
     env = make_env("veh2dof", batch_size=2, window=4, seed=5, max_steps=10)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        a = env.rollout(10, f.exploration_policy(), break_when_any_done=False)["action"]
+        a = env.rollout(10, exploration_policy(f), break_when_any_done=False)["action"]
     env = make_env("veh2dof", batch_size=2, window=4, seed=5, max_steps=10)
     with torch.no_grad():
         b = env.rollout(10, f.filter_module(), break_when_any_done=False)["action"]
@@ -69,18 +98,18 @@ def test_mean_feedback_feeds_back_the_deterministic_estimate_while_the_action_ex
     f = small(kind.removesuffix("-increment"), **extra)
     env = make_env("veh2dof", batch_size=3, window=4, seed=7, max_steps=12)
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # as a collector runs it
-        out = env.rollout(12, f.exploration_policy("mean"), break_when_any_done=False)
+        out = env.rollout(12, exploration_policy(f, "mean"), break_when_any_done=False)
     torch.testing.assert_close(out["next", "prev_estimate"], out[FEEDBACK_KEY], rtol=0, atol=0)
     data = f.system.simulate(3, 12, seed=7)
     torch.testing.assert_close(out[FEEDBACK_KEY], f.run(data), rtol=1e-5, atol=1e-6)
     assert not torch.allclose(out["action"], out[FEEDBACK_KEY])
     # the default feeds back the sampled action itself
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        out = env.rollout(12, f.exploration_policy(), break_when_any_done=False)
+        out = env.rollout(12, exploration_policy(f), break_when_any_done=False)
     assert FEEDBACK_KEY not in out.keys()
     torch.testing.assert_close(out["next", "prev_estimate"], out["action"], rtol=0, atol=0)
     with pytest.raises(ValueError, match="feedback must be one of"):
-        f.exploration_policy("noisy")
+        exploration_policy(f, "noisy")
 
 
 def test_v1_update_is_the_unit_action_times_the_bound_of_its_step():
@@ -89,7 +118,7 @@ def test_v1_update_is_the_unit_action_times_the_bound_of_its_step():
     f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
     env = make_env("veh2dof", batch_size=4, window=4, seed=3, max_steps=60)
     with torch.no_grad():
-        td = env.rollout(60, f.exploration_policy(), break_when_any_done=False)
+        td = env.rollout(60, exploration_policy(f), break_when_any_done=False)
     assert (td["correction"].abs() <= 1).all()
     steps = torch.arange(1, 61)
     assert (td["step"][..., 0] == steps).all()
@@ -129,7 +158,7 @@ def test_v1_reference_gain_update_is_the_mean_gain_update_plus_the_bounded_resid
     torch.testing.assert_close(f.correction_scale, f.config.correction_sigmas * schedule["estimate"])
     env = make_env(system, batch_size=3, window=4, seed=4, max_steps=60)
     with torch.no_grad():
-        td = env.rollout(60, f.exploration_policy(), break_when_any_done=False)
+        td = env.rollout(60, exploration_policy(f), break_when_any_done=False)
     s, rows = f.system, td["step"][..., 0].clamp(max=SCHEDULE_STEPS) - 1
     prediction = s.f(td["prev_estimate"], td["prev_control"])
     nu = td["measurement"] - s.g(prediction, td["control"])
@@ -138,7 +167,7 @@ def test_v1_reference_gain_update_is_the_mean_gain_update_plus_the_bounded_resid
     torch.testing.assert_close(td["action"], expected, atol=1e-6, rtol=0)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         explored = make_env(system, batch_size=3, window=4, seed=4, max_steps=60).rollout(
-            60, f.exploration_policy(), break_when_any_done=False
+            60, exploration_policy(f), break_when_any_done=False
         )["action"]
     with torch.no_grad():
         filtered = make_env(system, batch_size=3, window=4, seed=4, max_steps=60).rollout(
@@ -177,7 +206,7 @@ def test_v1_innovation_input_is_the_scaled_innovation_of_the_newest_frame():
     f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
     env = make_env("veh2dof", batch_size=3, window=4, seed=4, max_steps=8)
     with torch.no_grad():
-        td = env.rollout(8, f.exploration_policy(), break_when_any_done=False)
+        td = env.rollout(8, exploration_policy(f), break_when_any_done=False)
         s = f.system
         nu = td["measurement"] - s.g(s.f(td["prev_estimate"], td["prev_control"]), td["control"])
         torch.testing.assert_close(f.innovation(td["history"]), nu)
@@ -209,10 +238,13 @@ def test_v1_estimate_stays_in_the_plausible_state_range():
 
 
 def test_sliding_windows_pad_like_catframes():
-    """Open-loop windows: oldest first, the first frame repeated N−1 times in front."""
-    frames = torch.arange(4.0).reshape(1, 4, 1)
-    w = sliding_windows(frames, 3)[0]
-    assert w.tolist() == [[0, 0, 0], [0, 0, 1], [0, 1, 2], [1, 2, 3]]
+    """Open-loop windows: oldest first, the first frame repeated N−1 times in front (or zeros)."""
+    frames = torch.arange(1.0, 5.0).reshape(1, 4, 1)
+    same = FrameLayout((("measurement", 1),), 3)
+    assert same.sliding_windows(frames)[0].tolist() == [[1, 1, 1], [1, 1, 2], [1, 2, 3], [2, 3, 4]]
+    assert torch.equal(sliding_windows(frames, 3), same.sliding_windows(frames))  # the name before FrameLayout
+    zeros = FrameLayout((("measurement", 1),), 3, "zeros")
+    assert zeros.sliding_windows(frames)[0].tolist() == [[0, 0, 1], [0, 1, 2], [1, 2, 3], [2, 3, 4]]
 
 
 def test_slf_is_open_loop_and_vectorised():
@@ -369,3 +401,199 @@ def test_slf_missing_mask_flags_the_gaps_in_every_frame():
     assert torch.equal(f.policy.input_scale[flags], torch.ones(m))
     assert torch.isfinite(f.run(gappy)).all()
     torch.testing.assert_close(f.run(gappy), f.run_streaming(gappy))  # batched and step-by-step agree
+
+
+# ----------------------------------------------------------------------------- one class per kind
+def test_each_kind_is_its_own_class_on_a_shared_base():
+    """``make_filter`` and ``LearnedFilter(config)`` (the name before the split) build the class of the kind."""
+    expected = {"DAOF-v1": DAOFv1, "DAOF-v2": DAOFv2, "DAOF-v2-increment": DAOFv2Increment, "SLF": SLF}
+    for form, cls in expected.items():
+        kind, fields = FORMS[form]
+        config = FilterConfig(kind=kind, system="veh2dof", window=3, num_cells=8, **fields)
+        for f in (make_filter(kind, config), LearnedFilter(config), cls(config)):
+            assert type(f) is cls and isinstance(f, LearnedFilter) and f.name == kind
+        assert issubclass(cls, UpdateFilter) == (form in ("DAOF-v1", "DAOF-v2-increment"))
+    assert isinstance(make_filter("DAOF-v2", system="veh2dof", v2_action="increment"), DAOFv2)
+    with pytest.raises(ValueError, match="makes a DAOFv2, not a DAOFv1"):
+        DAOFv1(FilterConfig(kind="DAOF-v2", system="veh2dof"))
+    with pytest.raises(ValueError, match="got a SLF config"):
+        make_filter("DAOF-v1", FilterConfig(kind="SLF", system="veh2dof"))
+    with pytest.raises(ValueError, match="DAOF-v1 needs a model predictor"):
+        make_filter("DAOF-v1", system="veh14dof")
+
+
+@pytest.mark.parametrize("form", [*FORMS, "DAOF-v1-reference"])
+def test_fast_path_is_the_policy_network_and_its_squash(form):
+    """The hand-folded inference path (``estimate``) is ``PolicyNet.forward`` + the squash (+ the
+    prediction for an update filter), in an env rollout (step as a tensor) and streamed (step as an int)."""
+    extra = {"reference_gain": True, "correction_bound": "posterior"} if form == "DAOF-v1-reference" else {}
+    f = small_form(form.removesuffix("-reference"), **extra)
+    f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
+
+    def generic(window, prev, u_prev, step):
+        loc, _ = f.policy(window, step) if f.startup_input else f.policy(window)
+        action = f.squash(loc)
+        return f.update_estimate(action, prev, u_prev, step, window) if f.acts_by_update else action
+
+    env = make_env("veh2dof", batch_size=3, seed=4, max_steps=60, layout=f.layout)
+    with torch.no_grad():
+        td = env.rollout(60, f.filter_module(env=env), break_when_any_done=False)
+        expected = generic(td["history"], td["prev_estimate"], td["prev_control"], td["step"])
+    torch.testing.assert_close(td["action"], expected, rtol=1e-6, atol=1e-6)
+    data = f.system.simulate(2, 60, seed=5)
+    y, u_prev, u = f.validate(data)
+    with torch.no_grad():
+        for t, (window, prev, estimate) in enumerate(f.stream_steps(y, u_prev, u)):
+            step = torch.full((2, 1), t + 1)
+            torch.testing.assert_close(estimate, generic(window, prev, u_prev[:, t], step), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("setting", ["rollout", "sequential", "collector"])
+@pytest.mark.parametrize("form", list(FORMS))
+def test_every_learned_filter_runs_in_a_torchrl_env(form, setting):
+    """Each filter in an env with its own window layout: ``env.rollout``, inside a TensorDictSequential
+    and inside a Collector, it gives ``run``'s estimates on the same episodes (to the bit for the
+    closed-loop filters, streamed; the SLF's vectorised ``run`` to float rounding, its streamed one exactly)."""
+    f = small_form(form)
+    B, T = 3, 15
+    env = make_env("veh2dof", batch_size=B, seed=11, max_steps=T, layout=f.layout)
+    module = f.filter_module(env=env)
+    with torch.no_grad():
+        if setting == "collector":
+            collector = Collector(
+                env, module, frames_per_batch=B * T, total_frames=B * T, auto_register_policy_transforms=False
+            )
+            out = next(iter(collector))
+            collector.shutdown()
+        else:
+            policy = module
+            if setting == "sequential":  # the filter, then a module reading its estimate
+                error = TensorDictModule(lambda x, est: x - est, in_keys=["true_state", "action"], out_keys=["error"])
+                policy = TensorDictSequential(module, error)
+            out = env.rollout(T, policy, break_when_any_done=False)
+    assert out.batch_size == (B, T)
+    data = f.system.simulate(B, T, seed=11)
+    torch.testing.assert_close(out["action"], f.run_streaming(data), rtol=0, atol=0)
+    exact = 0 if f.closed_loop else 1e-6
+    torch.testing.assert_close(out["action"], f.run(data), rtol=exact, atol=exact)
+    if setting == "sequential":
+        torch.testing.assert_close(out["error"], out["true_state"] - out["action"])
+
+
+def test_filter_modules_say_what_they_read():
+    reads = {
+        "DAOF-v1": ["history", "prev_estimate", "prev_control", "step"],
+        "DAOF-v2": ["history", "step"],
+        "DAOF-v2-increment": ["history", "prev_estimate", "prev_control", "step"],
+        "SLF": ["history"],
+    }
+    for form, keys in reads.items():
+        module = small_form(form).filter_module()
+        assert list(module.in_keys) == keys and list(module.out_keys) == ["action"], form
+
+
+def test_a_filter_refuses_an_env_with_another_window_in_one_line():
+    f = small("DAOF-v1", window=5)
+    env = make_env("veh2dof", batch_size=2, window=20, seed=0)
+    with pytest.raises(ValueError) as error:
+        f.filter_module(env=env)
+    message = str(error.value)
+    assert "\n" not in message and message.startswith("DAOF-v1 reads windows of N=5 frames"), message
+    assert "the env builds N=20 frames" in message and "make_env(..., layout=filter.layout)" in message
+    f.check_env(make_env("veh2dof", batch_size=2, window=5, seed=0))  # the same layout passes
+    slf = small("SLF", window=5)  # open loop: a closed-loop env of the same N is another window
+    with pytest.raises(ValueError, match=r"^SLF reads windows of N=5 frames of \(measurement\[2\]"):
+        slf.check_env(make_env("veh2dof", batch_size=2, window=5, seed=0))
+    with pytest.raises(ValueError, match="padding 'zeros'"):
+        small("DAOF-v2", window=5).check_env(make_env("veh2dof", batch_size=2, window=5, seed=0, padding="zeros"))
+
+
+# ----------------------------------------------------------------------------- checkpoints
+@pytest.mark.parametrize("run", ["v1", "slf", "kind", "typed-v1", "filter_config"])
+def test_load_filter_reads_a_training_checkpoint(tmp_path, run):
+    """checkpoint.pt (``FilterTrainer.save_checkpoint``): the training config, the filter's state dict,
+    RNG states (numpy arrays among them), optimiser state. The filter is rebuilt from the filter config
+    the checkpoint holds, or in older ones from the training config (a recipe's ``version`` config,
+    the SLF's, a typed ``kind`` config whose network section no longer names every option)."""
+    network = {"num_cells": 16, "depth": 2, "correction_sigmas": 0.5, "reference_gain": True}
+    if run == "typed-v1":  # the structural options are read off the weights
+        network = {"num_cells": 16, "depth": 2, "correction_sigmas": 0.5}
+    config = {"system": "veh2dof", "scenario": "nominal", "window": 3, "include_controls": True, "network": network}
+    config |= {"overrides": {"replay": {"runs": 5, "steps": 10, "seed": 1}}, "seeds": {"normalizer": 7}}
+    kinds = {"v1": {"version": "v1"}, "slf": {}, "kind": {"kind": "DAOF-v2"}, "typed-v1": {"kind": "DAOF-v1"}}
+    config |= kinds.get(run, {"kind": "DAOF-v1"})
+    filter_config = FilterConfig.from_training(config)
+    if run == "typed-v1":
+        filter_config.reference_gain = True
+    assert filter_config.kind == {"slf": "SLF", "kind": "DAOF-v2"}.get(run, "DAOF-v1")
+    assert filter_config.reference_gain == (run != "slf" and run != "kind")  # DAOF-v1's option alone
+    f = make_filter(filter_config.kind, filter_config)
+    f.fit_normalizer(runs=4, steps=50)
+    history = [{"frames": 100, "rmse_beta": 0.1}]
+    training = {"frames": 100, "updates": 3, "wall": 1.5, "history": history, "best": {}, "next_ckpt": 200}
+    blob = {"training": training, "config": config, "filter": f.state_dict(), "rng": capture_rng()}
+    blob |= {"optim": torch.optim.Adam(f.parameters()).state_dict(), "logger": None}
+    if run == "filter_config":
+        f.config.correction_bound = "posterior"  # not in the training config: only the filter config says it
+        blob["filter_config"] = dict(vars(f.config))
+    atomic_save(blob, tmp_path / "checkpoint.pt")
+    g = load_filter(tmp_path / "checkpoint.pt", expect={"window": 3})
+    assert type(g) is type(f) and g.config == f.config and g.extra["history"] == history
+    data = f.system.simulate(2, 20, seed=2)
+    torch.testing.assert_close(g.run(data), f.eval().run(data), rtol=0, atol=0)
+
+
+def test_load_filter_reads_best_and_final_files_with_plain_data_only(tmp_path):
+    f = small("DAOF-v1")
+    f.save(tmp_path / "best.pt", extra={"history": [{"frames": 1, "score": 0.5}], "note": "x"})
+    blob = torch.load(tmp_path / "best.pt", weights_only=True)  # tensors and plain data only
+    assert set(blob) == {"config", "state_dict", "extra"} and blob["config"]["kind"] == "DAOF-v1"
+    assert type(load_filter(tmp_path / "best.pt")) is DAOFv1
+    np = pytest.importorskip("numpy")
+    f.save(tmp_path / "final.pt", extra={"score": np.float32(0.25), "frames": np.int64(3), "ok": np.bool_(True)})
+    assert load_filter(tmp_path / "final.pt").extra == {"score": 0.25, "frames": 3, "ok": True}
+    with pytest.raises(ValueError, match=r"plain data only; extra\['when'\] is a object"):
+        f.save(tmp_path / "bad.pt", extra={"when": object()})
+
+
+class _Payload:
+    """Creates a marker file when unpickled: what a malicious checkpoint would run."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_load_filter_refuses_a_pickled_payload_without_running_it(tmp_path):
+    marker = tmp_path / "payload-ran"
+    f = small("SLF")
+    torch.save(
+        {"config": {"kind": "SLF", "system": "veh2dof"}, "state_dict": f.state_dict(), "x": _Payload(marker)},
+        tmp_path / "evil.pt",
+    )
+    with open(tmp_path / "evil.pkl", "wb") as file:
+        pickle.dump({"config": _Payload(marker)}, file)
+    for name in ("evil.pt", "evil.pkl"):
+        path = tmp_path / name
+        with pytest.raises(ValueError) as error:
+            load_filter(path)
+        message = str(error.value)
+        assert message.startswith(str(path)) and "\n" not in message, message
+        assert not marker.exists(), f"loading {name} ran its payload"
+    torch.load(tmp_path / "evil.pt", weights_only=False)  # the payload is real: an unsafe load runs it
+    assert marker.exists()
+
+
+def test_load_filter_refuses_unreadable_files_with_one_line(tmp_path):
+    f = small("DAOF-v2")
+    f.save(tmp_path / "good.pt")
+    good = (tmp_path / "good.pt").read_bytes()
+    files = {"empty.pt": b"", "truncated.pt": good[: len(good) // 2], "random.pt": os.urandom(2000)}
+    for name, content in files.items():
+        (tmp_path / name).write_bytes(content)
+        start = re.escape(str(tmp_path / name))
+        with pytest.raises(ValueError, match=f"^{start} is not a readable checkpoint") as error:
+            load_filter(tmp_path / name)
+        assert "\n" not in str(error.value)

@@ -1,26 +1,30 @@
-"""The optimality-check recipe (recipes/linear/experiment.py): DAOF against the Kalman filter.
+"""The optimality check (experiment=linear, recipes/linear/experiment.py): DAOF against the Kalman filter.
 
-End to end at the tiny profile (the trainings as subprocesses, the study, the report), and its
-bad inputs: an unknown scenario or profile ends the script with one clear line before any training.
+End to end at the tiny profile (the trainings as subprocesses, the study and report in process),
+and its bad inputs: an unknown scenario or profile ends the run with one clear line before any training.
 """
 
 import csv
 import json
 import math
-import subprocess
-import sys
-from pathlib import Path
+import shlex
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "recipes" / "linear" / "experiment.py"
+from daof.experiments.experiment import main, plan_experiment
+
+SCRIPT = "recipes/linear/experiment.py"
 
 
-def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_path):
-    cmd = [sys.executable, str(SCRIPT), "profile=tiny", f"output_root={tmp_path}"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, cwd=ROOT)
-    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+def linear(*args: str):
+    """What ``python recipes/linear/experiment.py args...`` runs, in process."""
+    return main(list(args), experiment="linear", program=SCRIPT)
+
+
+def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_path, capsys):
+    args = ["profile=tiny", f"output_root={tmp_path}"]
+    linear(*args)
+    out = capsys.readouterr().out
     report = tmp_path / "report"
     for name in ("report.md", "results.csv", "results.json", "run0_states_errors.png", "learning_curves.png"):
         assert (report / name).is_file(), name
@@ -45,16 +49,31 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     assert f"DAOF-v1 RMSE ≤ 1.05× KF per state: **{'met' if met else 'not met'}**." in text
     ratio = rows["DAOF-v1"]["ratio_to_oracle"]
     assert f"DAOF-v1 / KF over all steps: position {ratio[0]:.3f}, velocity {ratio[1]:.3f}" in text
+    assert "; after the first 50 steps: position " in text  # settled_step: the ratios after the start-up
+    assert "Ratio to KF per state over the steps after the first 50 (the start-up excluded): KF-stationary " in text
+    assert "PF: bootstrap particle filter with 200 particles" in text and "Table I" not in text
     with (report / "results.csv").open() as fh:
         table = list(csv.DictReader(fh))
     assert [r["filter"] for r in table] == list(rows) and float(table[0]["ratio_position"]) == 1.0
-    # the trainings are the Experiment I recipe with recipes/linear/config.yaml
+    # the trainings: python -m daof.train system=linear filter=daof_v1|daof_v2 with the profile's overrides
     assert set(results["training"]) == {"DAOF-v1", "DAOF-v2"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
-    # DAOF-v2 acts by increments, as in Experiment I (v2_overrides)
+    # DAOF-v2 acts by increments, as in Experiment I (daof/conf/tuning/linear_daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20" / "run_config.json").read_text())
     assert v2_config["network"]["v2_action"] == "increment"
-    assert f"report: {report / 'report.md'}" in done.stdout
+    assert f"report: {report / 'report.md'}" in out
+    assert "DAOF-v1 RMSE ≤ 1.05× KF per state: " in out
+    # the command in the report plans this run again
+    command = shlex.split(results["command"])
+    assert command[:3] == ["python", SCRIPT, "profile=tiny"] and f"output_root={tmp_path}" in command
+    first, again = (plan_experiment("linear", a).scenarios["nominal"] for a in (args, command[2:]))
+    assert {n: j.requested_config for n, j in first.jobs.items()} == {
+        n: j.requested_config for n, j in again.jobs.items()
+    }
+    # a second run reuses every training and every study result
+    linear(*args)
+    out = capsys.readouterr().out
+    assert out.count("finished earlier, reusing") == 2 and out.count("reused finished result") == 5
 
 
 @pytest.mark.parametrize(
@@ -65,9 +84,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     ],
 )
 def test_bad_scenario_or_profile_exits_with_one_line(tmp_path, override, message):
-    cmd = [sys.executable, str(SCRIPT), override, f"output_root={tmp_path}"]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert done.returncode != 0
-    assert done.stderr.strip().splitlines() == [message], done.stderr
-    assert "Traceback" not in done.stdout + done.stderr
-    assert not list(tmp_path.glob("daof-*")), "nothing trains on a bad input"
+    with pytest.raises(SystemExit) as error:
+        linear(override, f"output_root={tmp_path}")
+    assert str(error.value) == message
+    assert not list(tmp_path.iterdir()), "nothing trains on a bad input"

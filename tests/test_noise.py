@@ -212,3 +212,80 @@ def test_invalid_parameters_raise():
         OutlierLaplaceNoise([1.0], prob=1.0)
     with pytest.raises(ValueError, match="covariance"):
         GaussianNoise([0.0, 0.0], [[1.0]])
+
+
+# ----------------------------------------------------------------------------- joint mixture
+def test_joint_mixture_draws_one_component_for_all_axes():
+    """joint=True: the component is shared by the axes; joint=False: drawn per axis.
+
+    The components sit at means 0 and 100 (std 1, scales 1 and 2), so each axis's component is read
+    off a sample exactly (|z| < 50 or not: a misread needs a 50σ draw). With joint=True every sample's
+    axes agree; with joint=False they disagree at the rate 2w(1 − w) = 0.42. Both fractions in the
+    second component match its weight 0.3 within Z standard errors (SE = √(w(1 − w)/n) ≈ 0.001: a
+    weight off by 0.01 fails with probability > 0.999).
+    """
+    w = 0.3
+    joint = GaussianMixtureNoise((1 - w, w), (0.0, 100.0), (1.0, 1.0), [1.0, 2.0], joint=True)
+    indep = GaussianMixtureNoise((1 - w, w), (0.0, 100.0), (1.0, 1.0), [1.0, 2.0])
+    se = math.sqrt(w * (1 - w) / N_SAMPLES)
+    for noise, mismatch in ((joint, 0.0), (indep, 2 * w * (1 - w))):
+        k = (draw(noise) / torch.tensor([1.0, 2.0], dtype=torch.float64)).abs() > 50.0  # component per axis
+        frac = k.double().mean(0)
+        assert ((frac - w).abs() <= Z * se).all(), (noise.joint, frac)
+        disagree = (k[:, 0] != k[:, 1]).double().mean().item()
+        assert abs(disagree - mismatch) <= Z * math.sqrt(mismatch * (1 - mismatch) / N_SAMPLES), (noise.joint, disagree)
+    assert joint.joint and not indep.joint
+
+
+def test_joint_mixture_moments_density_and_marginal():
+    """Same per-axis marginals as the per-axis mixture; the joint density is Σ_k w_k ∏_i N_ik."""
+    joint = GaussianMixtureNoise(W, M, S, SIGMA_XI, joint=True)
+    indep = spec_mixture()
+    torch.testing.assert_close(joint.mean, indep.mean)
+    # with zero component means (veh14dof) the covariance is diagonal; here m_k ≠ 0, so the axes co-vary:
+    # Cov = Σ_k w_k (diag(s_k²) + m_k m_kᵀ) − μμᵀ, in units of σ_i σ_j (μ = 0 for this mixture)
+    second = sum(w * (m * m) for w, m in zip(W, M))
+    cross = second * SIGMA_XI[0] * SIGMA_XI[1]
+    expected = indep.covariance.clone()
+    expected[0, 1] = expected[1, 0] = cross
+    torch.testing.assert_close(joint.covariance, expected, rtol=1e-6, atol=0)
+    x = draw(joint)
+    assert_mean_within_se(x, torch.zeros(2))
+    assert_var_within_se(x, joint.covariance.diagonal())
+    prod = x[:, 0] * x[:, 1]
+    se = prod.std() / math.sqrt(N_SAMPLES)
+    assert abs(prod.mean() - cross.double()) <= Z * se
+    # density by hand
+    v = torch.tensor([[0.0, 0.0], [-0.003, 0.01], [0.006, -0.02]])
+
+    def normal(z, m, s):
+        return math.exp(-0.5 * ((z - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+
+    def dens(row):
+        return sum(
+            w * normal(float(row[0]), m * 0.002, s * 0.002) * normal(float(row[1]), m * 0.005, s * 0.005)
+            for w, m, s in zip(W, M, S)
+        )
+
+    expected_lp = torch.tensor([math.log(dens(r)) for r in v])
+    torch.testing.assert_close(joint.log_prob(v), expected_lp, rtol=1e-5, atol=1e-4)
+    # marginal of axis 0 alone is the 1-D mixture; both present is log_prob; none present is 0
+    only0 = torch.tensor([True, False])
+    torch.testing.assert_close(joint.marginal_log_prob(v, only0), indep.channel_log_prob(v)[:, 0])
+    torch.testing.assert_close(joint.marginal_log_prob(v, torch.tensor([True, True])), joint.log_prob(v))
+    torch.testing.assert_close(joint.marginal_log_prob(v, torch.tensor([False, False])), torch.zeros(3))
+    nan_row = torch.tensor([[0.001, float("nan")]])
+    assert torch.isfinite(joint.marginal_log_prob(nan_row, torch.tensor([True, False]))).all()
+    with pytest.raises(NotImplementedError, match="not independent"):
+        joint.channel_log_prob(v)
+    with pytest.raises(ValueError, match="same weights"):
+        GaussianMixtureNoise([[0.5, 0.5], [0.9, 0.1]], M, S, SIGMA_XI, joint=True)
+
+
+def test_joint_mixture_density_integrates_to_one_in_2d():
+    joint = GaussianMixtureNoise(W, M, S, [1.0, 1.0], joint=True)
+    g = torch.linspace(-20.0, 25.0, 901, dtype=torch.float64)
+    X, Y = torch.meshgrid(g, g, indexing="ij")
+    dens = joint.log_prob(torch.stack([X, Y], -1).float()).double().exp()
+    total = torch.trapezoid(torch.trapezoid(dens, g), g)
+    assert float(total) == pytest.approx(1.0, abs=1e-4)

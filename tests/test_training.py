@@ -1,29 +1,37 @@
 """Training runs: a checkpoint restores every piece of state exactly, and the run finishes."""
 
 import math
+import re
 from pathlib import Path
 
 import pytest
 import torch
 from daof.envs.filtering_env import FEEDBACK_KEY
 from daof.envs.gaps import training_dropout_mask
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
 from daof.filters.learned import load_filter
+from daof.train.config import compose_config
 from daof.train.dsac import MAX_EXPLORATION_STD, DSACTTrainer
 from daof.train.supervised import SLFTrainer, gap_seed
 from daof.train.validation import rmse_per_state
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes" / "veh2dof"
+FILTERS = {"v1": "daof_v1", "v2": "daof_v2"}
 
 
 def tiny_cfg(name: str, out: Path, **changes):
-    """A recipe config as Hydra composes it (``version`` v1/v2 picks its group), made tiny."""
-    group = [f"version={changes.pop('version')}"] if changes.get("version") in ("v1", "v2") else []
-    with initialize_config_dir(str(RECIPES), version_base="1.3"):
-        cfg = compose(config_name=Path(name).stem, overrides=group)
+    """A training config as ``python -m daof.train`` composes it, made tiny.
+
+    ``name`` "config.yaml" is DAOF (``version`` v1, the default, or v2: DAOF-v2 in its estimate form,
+    the paper's x̂ = π(h)), "slf.yaml" the SLF; ``system`` picks the system (default veh2dof).
+    """
+    version = changes.pop("version", "v1")
+    filter_ = "slf" if name == "slf.yaml" else FILTERS[version]
+    overrides = [f"filter={filter_}", f"system={changes.pop('system', 'veh2dof')}"]
+    if filter_ == "daof_v2":
+        overrides.append("network.v2_action=estimate")
+    cfg = compose_config(overrides)
     cfg.output_dir = str(out)
     cfg.logger.backend = "csv"
     cfg.network.num_cells = 16
@@ -120,11 +128,6 @@ def test_resume_refuses_another_run(tmp_path):
         other.resume(tmp_path / "nothing.pt")
 
 
-def test_bad_version(tmp_path):
-    with pytest.raises(ValueError, match="version must be 'v1' or 'v2'"):
-        DSACTTrainer(tiny_cfg("config.yaml", tmp_path, version="v3"))
-
-
 def test_slf_learns_and_resumes(tmp_path):
     """A few SLF batches already beat the raw yaw-rate measurement; resume continues the run.
 
@@ -181,13 +184,46 @@ def test_slf_training_gaps_are_drawn_independently_of_the_simulation_noise(tmp_p
     assert not torch.equal(flags, mask(seed))
 
 
-def test_version_group_gives_each_version_its_settings(tmp_path):
-    """config.yaml's defaults are DAOF-v1's residual design; version=v2 selects DAOF-v2's own."""
+def test_filter_and_system_groups_give_each_row_its_settings(tmp_path):
+    """filter=... picks a kind's defaults; a system's tuning file changes only what that system needs."""
     v1, v2 = (tiny_cfg("config.yaml", tmp_path, version=v) for v in ("v1", "v2"))
-    settings = ("network.reference_gain", "reward.baseline", "network.critic_form", "collector.episode_steps")
-    assert [OmegaConf.select(v1, key) for key in settings] == [True, "zero_action", "quadratic", 500]
-    assert [OmegaConf.select(v2, key) for key in settings] == [False, "none", "mlp", 100]
-    assert (v1.version, v2.version) == ("v1", "v2") and v2.loss.alpha_init == pytest.approx(math.e)
+    settings = ("reward.baseline", "network.critic_form", "collector.episode_steps", "network.window_init")
+    assert [OmegaConf.select(v1, key) for key in settings] == ["zero_action", "quadratic", 500, "newest"]
+    assert [OmegaConf.select(v2, key) for key in settings] == ["none", "mlp", 100, "uniform"]
+    assert (v1.kind, v2.kind) == ("DAOF-v1", "DAOF-v2") and v2.loss.alpha_init == pytest.approx(math.e)
+    # Experiment I and the linear check train DAOF-v2 by increments, Experiment II in the paper's form
+    forms = {s: compose_config(["filter=daof_v2", f"system={s}"]).network.v2_action for s in ("veh2dof", "linear")}
+    assert forms == {"veh2dof": "increment", "linear": "increment"}
+    e2 = compose_config(["filter=daof_v2", "system=veh14dof"])
+    assert (e2.network.v2_action, e2.network.critic_form, e2.loss.gamma, e2.include_controls) == (
+        "estimate", "reward_quadratic", 0.0, False
+    )
+    assert compose_config(["filter=slf", "system=veh14dof"]).optim.epochs_per_batch == 8
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("windw=5", "unknown config key 'windw'; did you mean 'window'?"),
+        ("+windw=5", "unknown config key 'windw'"),
+        ("window=abc", "could not be converted to Integer"),
+        ("window=0", "window must be >= 1"),
+        ("system=foo", "unknown system 'foo'; valid: linear, veh14dof, veh2dof"),
+        ("filter=daof_v3", "unknown filter 'daof_v3'"),
+        ("scenario=foo", "unknown scenario 'foo' for veh2dof"),
+        ("overrides.no_such=1", "unknown parameter"),
+        ("optim.utd=-1", "optim.utd must be > 0"),
+        ("collector.total_frames=0", "collector.total_frames must be >= 1"),
+        ("collector.total_frames=8000", "trains nothing"),
+        ("network.critic_form=cubic", "network.critic_form='cubic' is not valid"),
+        ("dropout.p_max=0.2", "DAOF trains on complete data"),
+        ("optim.lr_final=0", "optim.lr_final must be in"),
+    ],
+)
+def test_a_bad_config_is_refused_in_one_line_before_any_work(override, message):
+    with pytest.raises(ValueError, match=re.escape(message)) as error:
+        compose_config([override])
+    assert "\n" not in str(error.value)
 
 
 def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
@@ -215,10 +251,9 @@ def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
 
 def test_startup_schedules_of_a_dsac_run(tmp_path):
     """reward.weights=kalman: W_t rises from below W to W (non-decreasing) and the env uses it; v1's
-    kalman bound and innovation scale come from the same UKF; constant weights and the process
-    bound (the veh2dof default) switch the weights and the bound off."""
-    kalman = {"network.correction_bound": "kalman"}
-    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "k", version="v1", **kalman))
+    bound b_t = k·√diag P⁺_t and innovation scale come from the same UKF; constant weights switch the
+    weights off and keep the bound."""
+    trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "k", version="v1"))
     system = trainer.system
     w = 1.0 / (system.state_dim * system.error_scale**2)
     schedule = trainer.reward_weights
@@ -228,13 +263,9 @@ def test_startup_schedules_of_a_dsac_run(tmp_path):
     assert trainer.base_env.reward_weights is schedule
     assert (trainer.filter.correction_scale[0] > trainer.filter.correction_scale[-1]).any()
     assert (trainer.filter.policy.innovation_scale[0] > trainer.filter.policy.innovation_scale[-1]).all()
-    off = {"reward.weights": "constant", "network.correction_bound": "process"}
-    plain = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "c", version="v1", **off))
+    plain = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "c", version="v1", **{"reward.weights": "constant"}))
     assert plain.reward_weights is None
-    k, floor = plain.filter.config.correction_sigmas, system.process_noise.covariance.diagonal().sqrt()
-    torch.testing.assert_close(plain.filter.correction_scale, (k * floor).expand_as(plain.filter.correction_scale))
-    with pytest.raises(ValueError, match="reward.weights"):
-        DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"reward.weights": "sometimes"}))
+    torch.testing.assert_close(plain.filter.correction_scale, trainer.filter.correction_scale)
 
 
 def test_learning_rates_follow_a_cosine_to_the_final_fraction(tmp_path):
@@ -262,26 +293,6 @@ def test_slf_learning_rate_follows_the_same_cosine(tmp_path):
     expected = 0.2 + 0.8 * 0.5 * (1 + math.cos(math.pi * last_batch / 1000))
     assert trainer.optim.param_groups[0]["lr"] == pytest.approx(float(cfg.optim.lr) * expected)
     assert expected < 0.5
-    cfg = tiny_cfg("slf.yaml", tmp_path / "bad", **{"optim.lr_final": 0.0})
-    with pytest.raises(ValueError, match="lr_final must be in"):
-        SLFTrainer(cfg).train()
-
-
-def test_shared_reward_weights_keep_the_settled_ratio_between_states():
-    """kalman_shared: one factor per step (the settled over the step's expected reward), so W_t ∝ W."""
-    from daof.envs import make_system
-
-    from daof.train.schedules import reward_weight_schedule
-
-    system = make_system("veh2dof")
-    w = 1.0 / (system.state_dim * system.error_scale**2)
-    std = torch.tensor([[4.0, 2.0], [2.0, 1.0], [1.0, 1.0], [1.0, 1.0]]) * system.error_scale
-    shared = reward_weight_schedule(system, std, shared=True)
-    # settled: [1, 1]·s → expected reward Σ w s² = 1; at t = 1: Σ w (k s)² = (16 + 4)/2 = 10
-    torch.testing.assert_close(shared[:, 0] / w[0], torch.tensor([0.1, 0.4, 1.0, 1.0]))
-    torch.testing.assert_close(shared / w, (shared[:, :1] / w[0]).expand(-1, 2))
-    per_state = reward_weight_schedule(system, std)
-    torch.testing.assert_close(per_state[0] / w, torch.tensor([1 / 16, 1 / 4]))
 
 
 def test_the_untrained_network_is_never_the_best_checkpoint(tmp_path):
@@ -499,8 +510,6 @@ def test_an_unknown_critic_form_is_refused(tmp_path):
 
 
 RESIDUAL = {
-    "network.reference_gain": True,
-    "network.correction_bound": "posterior",
     "network.critic_form": "quadratic",
     "reward.baseline": "zero_action",
 }
@@ -597,3 +606,15 @@ def test_window_init_newest_starts_every_network_on_the_newest_frame(tmp_path):
         assert not torch.equal(critic(window, action, step), critic(window, action + 0.5, step))
     with pytest.raises(ValueError, match="window_init"):
         DSACTTrainer(tiny_cfg("config.yaml", tmp_path / "bad", **{"network.window_init": "oldest"}))
+
+
+@pytest.mark.parametrize("name, version", [("config.yaml", "v1"), ("config.yaml", "v2"), ("slf.yaml", None)])
+def test_load_filter_reads_a_training_checkpoint(tmp_path, name, version):
+    """``load_filter`` takes a run's checkpoint.pt as well as its best.pt and final.pt: the filter of
+    the run's config with the checkpoint's weights."""
+    changes = {"version": version} if version else {}
+    trainer = (SLFTrainer if version is None else DSACTTrainer)(tiny_cfg(name, tmp_path, **changes))
+    loaded = load_filter(trainer.save_checkpoint())
+    assert type(loaded) is type(trainer.filter) and loaded.config == trainer.filter.config
+    data = trainer.val_data
+    torch.testing.assert_close(loaded.run(data), trainer.filter.eval().run(data), rtol=0, atol=0)

@@ -3,8 +3,8 @@
 The CI checks run one float32 batch (the default dtype) of 3 s at h = 1 ms: the nominal turn
 (App. A rows 1.5–3.0 s, which include the steady state), a steering sweep at 70 km/h (T6, T7),
 straight coasting (T2 start, T9) and the constant brake / drive torques of T8. The 12-s checks
-(all App. A rows, T2's u(10 s), T3 mirror symmetry at 1e-12 in float64, T4 over t ∈ [6, 9] s,
-T10 against h = 0.25 ms and h = 2 ms, compiled vs eager) are marked slow.
+(all App. A rows, T2's u(10 s), T9's F_xw/F_z and κ at 10 s, T3 mirror symmetry at 1e-12 in float64,
+T4 over t ∈ [6, 9] s, T10 against h = 0.25 ms and h = 2 ms, compiled vs eager) are marked slow.
 """
 
 from __future__ import annotations
@@ -319,6 +319,12 @@ def test_t11_sensor_equations_steady_turn(ci):
     g = gnss(x.double())
     speed = torch.sqrt(x[:, 14].double() ** 2 + x[:, 15].double() ** 2)
     torch.testing.assert_close(g[:, 2:].norm(dim=-1), speed, rtol=1e-12, atol=0)
+    # and its direction: the course angle atan2(Ẏ, Ẋ) is heading + side slip, ψ + β (a rotation by −ψ
+    # keeps the norm but gives −ψ + β); the nominal run is at ψ = 27.5° here
+    course = torch.atan2(g[:, 3], g[:, 2])
+    heading_plus_slip = x[:, 5].double() + torch.atan2(x[:, 15].double(), x[:, 14].double())
+    assert x[NOMINAL, 5].item() / DEG == pytest.approx(27.5, abs=0.3)
+    torch.testing.assert_close(course, heading_plus_slip, rtol=0, atol=1e-9)
 
 
 # ----------------------------------------------------------------------------- T2, T8, T9
@@ -354,26 +360,22 @@ def test_t9_free_rolling_slip(ci):
         assert -p.f_r < r < 0
 
 
-@pytest.mark.parametrize(
-    "axle",
-    [
-        "front",
-        pytest.param(
-            "rear",
-            marks=pytest.mark.xfail(
-                reason="measured F_xw/F_z = −0.00900 on the rear wheels (lighter load, so the wheel's "
-                "J_w ω̇ term weighs more: −f_r + J_w|ω̇|/(R_e F_z)); the spec's −0.0093 fits the front "
-                "(−0.00919)",
-                strict=True,
-            ),
-        ),
-    ],
-)
-def test_t9_force_ratio_vs_spec_value(ci, axle):
-    _, aux = ci.at(2.0)
-    ratio = aux.F_xw[COAST].double() / aux.F_z[COAST].double()
-    for r in ratio[:2] if axle == "front" else ratio[2:]:
-        assert r.item() == pytest.approx(-0.0093, rel=0.03)
+@pytest.mark.slow
+@pytest.mark.parametrize("axle", ["front", "rear"])
+def test_t9_force_ratio_vs_spec_value(long64, axle):
+    """T9's F_xw/F_z ≈ −0.0093 and κ ≈ −4.6e-4 (±3 %) on the T2 coasting run at its end, t = 10 s.
+
+    The ratio is −f_r + J_w|ω̇|/(R_e F_z): it depends on the deceleration, so it is read where the
+    spec's T2 run is (10 s, u = 17.31 m/s): front −0.00928, rear −0.00911 (at 2 s the lighter rear
+    gives −0.00900, just outside 3 %).
+    """
+    _, aux = long64.at(10.0)
+    ratio = aux.F_xw[2] / aux.F_z[2]
+    kappa = aux.kappa[2]
+    wheels = slice(0, 2) if axle == "front" else slice(2, 4)
+    for r, k in zip(ratio[wheels].tolist(), kappa[wheels].tolist()):
+        assert r == pytest.approx(-0.0093, rel=0.03)
+        assert k == pytest.approx(-4.6e-4, rel=0.03)
 
 
 @pytest.mark.parametrize(
@@ -540,8 +542,82 @@ def test_simulate_shapes_and_gnss_hold(system, sim_data):
     held = y[:, 1:, 11:15] == y[:, :-1, 11:15]
     assert held.all(-1)[fresh[:, 1:] == 0].all()  # held between fixes
     assert (~held.all(-1))[fresh[:, 1:] == 1].all()
-    # truth vs measurement: V_x and the fresh GNSS speed agree to a few σ
-    assert (sim_data["state"][..., 4] - 19.4).abs().max() < 3.5
+    # V_x stays near its draw from U[60, 80] km/h (the PI holds the speed to about ±1 %)
+    vx = sim_data["state"][..., 4]
+    assert (vx > 59 * KMH).all() and (vx < 81 * KMH).all()
+    # a fresh fix's speed ‖(Ẋ, Ẏ)‖ is the true speed √(u² + v²) = V_x / cos β plus the GNSS velocity noise
+    # (Laplace, σ = 0.05 m/s per axis): within 0.3 m/s, 6σ, at every fix of this fixed seed
+    speed = vx / torch.cos(sim_data["state"][..., 3])
+    gnss_speed = y[..., 13:15].norm(dim=-1)
+    fix = fresh == 1
+    assert fix.sum() >= 6
+    assert ((gnss_speed - speed)[fix].abs() < 0.3).all(), (gnss_speed - speed)[fix]
+
+
+def test_float64_time_base_is_the_float64_product(monkeypatch):
+    """A float64 run's time t·Δt (the steering profile's clock) is the float64 product, not a float32
+    product cast up (float32(0.02) = 0.0199999996: a float32 clock in a float64 run)."""
+    import daof.envs.vehicle14dof.system as module
+
+    system = envs.make_system("veh14dof", dtype="float64")
+    seen = []
+    drive, integrate = module.drive_inputs, module.integrate_substeps
+
+    def spy_drive(x, integ, time, *args):
+        seen.append(time)
+        return drive(x, integ, time, *args)
+
+    def spy_integrate(x, integ, time0, *args):
+        seen.append(time0)
+        return integrate(x, integ, time0, *args)
+
+    monkeypatch.setattr(module, "drive_inputs", spy_drive)
+    monkeypatch.setattr(module, "integrate_substeps", spy_integrate)
+    gen = torch.Generator().manual_seed(0)
+    sim = system.reset_episode(2, gen)
+    sim["t"] = torch.tensor([3, 1234])
+    steps = [sim["t"].clone()]
+    for _ in range(2):
+        sim, _ = system.advance(sim, gen)
+        steps.append(sim["t"].clone())
+    # reset observes t = 0; each advance integrates from t and observes t + 1
+    expected = [torch.zeros(2, dtype=torch.long), steps[0], steps[1], steps[1], steps[2]]
+    assert len(seen) == len(expected)
+    for time, t in zip(seen, expected):
+        assert time.dtype == F64
+        assert torch.equal(time, t.double() * 0.02), (time, t)
+    assert not torch.equal(steps[1].double() * 0.02, (steps[1] * 0.02).double())  # the check can fail
+
+
+def test_disturbance_is_the_spec_joint_mixture(system):
+    """§0: (F_d, M_d) is ONE two-component mixture: N(0, diag(100², 50²)) w.p. 0.9, N(0, diag(1000², 500²))
+    w.p. 0.1, a component per draw shared by both channels (never a large force with a small moment).
+
+    z = (F_d/100 N, M_d/50 N·m) from the simulator's own draws (reset_episode, 200 000 runs). With
+    a = P(|N(0,1)| > 3), b = P(|N(0,1)| > 0.3): P(|z_i| > 3) = 0.9a + 0.1b = 0.0789 per channel, and
+    P(both > 3) = 0.9a² + 0.1b² = 0.0584 if the component is joint, 0.0789² = 0.0062 if drawn per
+    channel. Tolerances are Z = 5 binomial standard errors (SE ≈ 6e-4): the weight 0.1 read off
+    P(|z_i| > 3) is pinned to ±0.004 (0.11 instead of 0.1 fails with probability > 0.999).
+    """
+    n = 200_000
+    d = system.reset_episode(n, torch.Generator().manual_seed(3))["disturbance"].double()
+    assert d.shape == (n, 2)
+    z = d / torch.tensor([100.0, 50.0], dtype=F64)
+    a = math.erfc(3 / math.sqrt(2))
+    b = math.erfc(0.3 / math.sqrt(2))
+
+    def check(frac, p):
+        assert abs(frac - p) <= 5 * math.sqrt(p * (1 - p) / n), (frac, p)
+
+    big = z.abs() > 3
+    for i in range(2):
+        check(big[:, i].double().mean().item(), 0.9 * a + 0.1 * b)
+    check((big[:, 0] & big[:, 1]).double().mean().item(), 0.9 * a**2 + 0.1 * b**2)
+    # zero mean, variance 0.9·1 + 0.1·10² = 10.9 per channel (in units of the first component's std)
+    se = z.std(0) / math.sqrt(n)
+    assert (z.mean(0).abs() <= 5 * se).all()
+    sq = z**2
+    assert ((sq.mean(0) - 10.9).abs() <= 5 * sq.std(0) / math.sqrt(n)).all(), sq.mean(0)
 
 
 def test_seeding(system, sim_data):

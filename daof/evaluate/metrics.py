@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
+from scipy.stats import bootstrap
 
 __all__ = ["pooled_rmse", "per_run_rmse", "count_diverged", "paired_rmse_ratio"]
 
@@ -45,10 +47,15 @@ def paired_rmse_ratio(
     """Pooled-RMSE ratio of a filter to a reference on the same runs, with a paired bootstrap interval.
 
     Both inputs are per-run RMSEs [runs, states] of equally long runs, so the pooled MSE is the
-    mean of the per-run MSEs. Runs are resampled with replacement (the same runs for both
-    filters: the comparison is paired) ``draws`` times; the interval is the percentile interval
-    at ``level``. Returns per state: ``ratio``, ``low``, ``high`` and ``better_runs`` (runs where
-    the filter's RMSE is below the reference's).
+    mean of the per-run MSEs. ``scipy.stats.bootstrap(paired=True, method="percentile")`` resamples
+    the runs with replacement (the same runs for both filters: the comparison is paired) ``draws``
+    times from ``numpy.random.default_rng(seed)``; the interval is the percentile interval at
+    ``level``. Returns per state: ``ratio``, ``low``, ``high`` and ``better_runs`` (runs where the
+    filter's RMSE is below the reference's).
+
+    (Until issue 31 this was a hand-written torch bootstrap: the same statistic and interval, but
+    another random stream, so interval ends moved within their Monte Carlo error, about 1e-3
+    relatively on 20 veh2dof runs. scipy takes 1.5-2x its time, tens of ms per comparison.)
     """
     a, b = run_rmse.double().pow(2), reference_run_rmse.double().pow(2)
     if a.shape != b.shape or a.ndim != 2 or a.shape[0] < 2:
@@ -56,16 +63,27 @@ def paired_rmse_ratio(
         raise ValueError(f"need per-run RMSEs [runs >= 2, states] of the same shape, got {shapes}")
     if not 0 < level < 1:
         raise ValueError(f"level must be in (0, 1), got {level}")
-    generator = torch.Generator().manual_seed(seed)
-    index = torch.randint(a.shape[0], (draws, a.shape[0]), generator=generator)
-    ratios = (a[index].mean(1) / b[index].mean(1)).sqrt()  # [draws, states]
-    tail = (1 - level) / 2
-    low, high = ratios.quantile(torch.tensor([tail, 1 - tail], dtype=ratios.dtype), dim=0)
+    interval = bootstrap(
+        (a.numpy(), b.numpy()),
+        _pooled_ratio,
+        n_resamples=draws,
+        paired=True,
+        vectorized=True,
+        axis=0,
+        confidence_level=level,
+        method="percentile",
+        rng=np.random.default_rng(seed),
+    ).confidence_interval
     return {
         "ratio": (a.mean(0) / b.mean(0)).sqrt().tolist(),
-        "low": low.tolist(),
-        "high": high.tolist(),
+        "low": np.atleast_1d(interval.low).tolist(),
+        "high": np.atleast_1d(interval.high).tolist(),
         "better_runs": (a < b).sum(0).tolist(),
         "runs": a.shape[0],
         "level": level,
     }
+
+
+def _pooled_ratio(mse: np.ndarray, reference_mse: np.ndarray, axis: int) -> np.ndarray:
+    """sqrt of the ratio of mean per-run MSEs along ``axis`` (the bootstrap's statistic)."""
+    return np.sqrt(mse.mean(axis) / reference_mse.mean(axis))

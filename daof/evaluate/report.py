@@ -1,4 +1,11 @@
-"""Write a study's report directory: report.md, results.csv, results.json and the figures."""
+"""Write a study's report directory: report.md, results.csv, results.json and the figures.
+
+What a report holds beyond the study's own numbers is a ``ReportSpec``: its ``Layout`` (one
+column of all states or one per state, the filter every other one is compared with run by run,
+the paper's table shown for context), the learned filters' training record, a window study,
+requirements checked against the numbers, and notes. Nothing here depends on which system it is:
+units and scales come from the system (``in_report_units``), everything else from the spec.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +16,7 @@ import math
 import os
 import platform
 import subprocess
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -18,12 +26,19 @@ from daof.evaluate.metrics import paired_rmse_ratio
 from daof.evaluate.study import ORACLE
 
 __all__ = [
+    "Layout",
+    "PaperTable",
+    "ReportSpec",
+    "Requirement",
+    "Training",
+    "WindowStudy",
     "environment_info",
     "in_report_units",
     "ratio_label",
     "scenario_winners",
     "write_report",
     "write_scenario_report",
+    "PAPER_TABLES",
     "PAPER_TABLE_I",
     "PAPER_TABLE_II",
 ]
@@ -44,6 +59,86 @@ PAPER_TABLE_II = {
     "SLF": (0.262, 1.863, 1.513, 0.587, 4.545, 0.020, 0.45),
     "DAOF-v2": (0.012, 0.022, 0.082, 0.015, 0.105, 0.002, 0.63),
 }
+
+
+@dataclass(frozen=True)
+class PaperTable:
+    """One of the paper's tables, shown in a report for context (``Layout.paper_table``)."""
+
+    number: str
+    caveat: str
+    columns: tuple[str, ...]
+    rows: dict[str, tuple]
+    #: the paper's window study (N -> RMSE per state), a column of the report's window study
+    windows: dict[int, tuple] = field(default_factory=dict)
+    windows_column: str = ""
+
+
+PAPER_TABLES = {
+    "I": PaperTable(
+        "I",
+        "The paper does not publish its system parameters; its absolute numbers are not comparable with ours, "
+        "only the ordering and ratios between filters are.",
+        ("RMSE β [rad]", "RMSE r [rad/s]", "cost [ms]"),
+        PAPER_TABLE_I,
+        PAPER_WINDOWS,
+        "paper RMSE β / r (for context)",
+    ),
+    "II": PaperTable(
+        "II",
+        "The paper does not publish its vehicle parameters, manoeuvre or sensor set-up; its absolute numbers are "
+        "not comparable with ours, only the ordering and ratios between filters are.",
+        ("RMSE pitch [deg]", "roll [deg]", "yaw rate [deg/s]", "side slip [deg]", "Vx [km/h]", "ax [g]", "cost [ms]"),
+        PAPER_TABLE_II,
+    ),
+}
+
+
+@dataclass
+class Layout:
+    """How a report lays out its study (an experiment config's ``report:``)."""
+
+    per_state: bool = False  # one RMSE column per state, a per-run spread table and a figure per state (Table II)
+    paired_with: str | None = None  # every other filter compared run by run with this one (``paired_comparison``)
+    paper_table: str | None = None  # the paper's table shown for context: a key of PAPER_TABLES (I | II)
+
+
+@dataclass
+class Requirement:
+    """A requirement decided from the study's numbers, stated as met or not met."""
+
+    requirement: str
+    met: bool
+    detail: str = ""
+
+
+@dataclass
+class Training:
+    """The learned filters' training: validation curves, reference lines beside them, costs."""
+
+    curves: dict[str, list[dict]] = field(default_factory=dict)  # filter -> validation history
+    references: dict[str, list[float]] = field(default_factory=dict)  # e.g. UKF -> its RMSE on the validation set
+    costs: dict[str, dict] = field(default_factory=dict)  # filter -> frames, updates, wall_s, threads
+
+
+@dataclass
+class WindowStudy:
+    """One learned filter at several input windows N: ``{"window", "rmse", "cost_ms"}`` per N."""
+
+    filter: str
+    rows: list[dict]
+
+
+@dataclass
+class ReportSpec:
+    """What ``write_report`` writes beyond the study's own numbers."""
+
+    layout: Layout = field(default_factory=Layout)
+    training: Training | None = None
+    window_study: WindowStudy | None = None
+    requirements: list[Requirement] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)  # provenance: the command, wall time, ...
 
 
 def environment_info() -> dict:
@@ -252,62 +347,71 @@ def _state_columns_table(study, units) -> list[str]:
     return lines
 
 
-def write_report(
-    study,
-    out_dir: str | Path,
-    *,
-    title: str,
-    profile: str,
-    curves: dict[str, list[dict]] | None = None,
-    curve_references: dict[str, list[float]] | None = None,
-    window_rows: list[dict] | None = None,
-    training: dict[str, dict] | None = None,
-    notes: list[str] | None = None,
-    meta: dict | None = None,
-    per_state: bool = False,
-    requirements: list[dict] | None = None,
-    paired_with: str | None = None,
-) -> Path:
+def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: ReportSpec | None = None) -> Path:
     """Write ``report.md``, ``results.csv``, ``results.json`` and figures into ``out_dir``.
 
-    Numbers are in the system's reporting units where it has them (``in_report_units``).
-    ``per_state``: the paper's Table II layout (one column per state, a per-run spread table) and
-    one state/error figure per state instead of one figure of all states.
-    ``requirements``: ``{"requirement": text, "met": bool, "detail": text}`` each, stated as met or
-    not met in a section of their own (and in results.json); the caller decides them from the numbers.
-    ``paired_with``: a filter of the study every other one is compared with run by run (``paired_comparison``).
+    Numbers are in the system's reporting units where it has them (``in_report_units``); what the
+    report holds beyond them is ``spec``.
     """
+    spec = spec or ReportSpec()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    s = study.system
+    si_units = tuple(study.system.state_units)
     study, units, scale = in_report_units(study)
-    info = {**environment_info(), **(meta or {})}
+    layout = spec.layout
+    paired = paired_comparison(study, layout.paired_with) if layout.paired_with else None
+    info = {**environment_info(), **spec.meta}
     payload = {"profile": profile, **study.to_json(), **info}
     if scale is not None:
-        payload.update(units=list(units), si_units=list(s.state_units), unit_scale=scale.tolist())
-    if window_rows:
-        payload["window_study"] = window_rows
-    if training:
-        payload["training"] = training
-    if requirements:
-        payload["requirements"] = requirements
-    paired = paired_comparison(study, paired_with) if paired_with else None
+        payload.update(units=list(units), si_units=list(si_units), unit_scale=scale.tolist())
+    if spec.window_study:
+        payload["window_study"] = spec.window_study.rows
+    if spec.training and spec.training.costs:
+        payload["training"] = spec.training.costs
+    if spec.requirements:
+        payload["requirements"] = [dataclasses.asdict(r) for r in spec.requirements]
     if paired:
-        payload["paired_with"] = {"reference": paired_with, "filters": paired}
+        payload["paired_with"] = {"reference": layout.paired_with, "filters": paired}
     (out / "results.json").write_text(json.dumps(payload, indent=2))
-    with (out / "results.csv").open("w", newline="") as fh:
+    _write_csv(study, out / "results.csv", units if scale is not None else None)
+    figs = _figures(study, out, spec, units, scale)
+
+    paper = PAPER_TABLES[layout.paper_table] if layout.paper_table else None
+    lines = _header_lines(title, profile) + _system_lines(study)
+    lines += ["## Results", "", *(_state_columns_table(study, units) if layout.per_state else _results_table(study))]
+    lines += ["", *_reference_lines(study), *(_paired_lines(study, layout.paired_with, paired) if paired else [])]
+    lines += _requirement_lines(spec.requirements) + _window_lines(spec.window_study, paper)
+    lines += _training_lines(spec.training.costs if spec.training else {}) + _paper_lines(paper)
+    if spec.notes:
+        lines += ["## Notes", "", *[f"- {n}" for n in spec.notes], ""]
+    lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
+    lines += _provenance_lines(info, spec.meta)
+    (out / "report.md").write_text("\n".join(lines))
+    return out / "report.md"
+
+
+def _write_csv(study, path: Path, units) -> None:
+    """One row per filter: RMSE per state (in ``units`` when given), ratio per state, cost and counts."""
+    s = study.system
+    names = s.state_names
+    rmse = [f"rmse_{n}" for n in names] if units is None else [f"rmse_{n} [{u}]" for n, u in zip(names, units)]
+    with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(
             ["filter"]
-            + [f"rmse_{n}" if scale is None else f"rmse_{n} [{u}]" for n, u in zip(s.state_names, units)]
-            + [f"ratio_{n}" for n in s.state_names]
+            + rmse
+            + [f"ratio_{n}" for n in names]
             + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
         )
         for name, r in study.results.items():
             ratio = r.ratio_to_oracle or [None] * s.state_dim
             writer.writerow([name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs])
 
-    if per_state:
+
+def _figures(study, out: Path, spec: ReportSpec, units, scale) -> dict[str, Path]:
+    """The report's figures (caption -> file): one run, per-run RMSE, learning curves, window study."""
+    s = study.system
+    if spec.layout.per_state:
         figs = {
             f"run 0: {n}": figures.plot_one_run_state(study, j, out / f"run0_{n}.png", units=units)
             for j, n in enumerate(s.state_names)
@@ -315,9 +419,11 @@ def write_report(
     else:
         figs = {"one run": figures.plot_one_run(study, out / "run0_states_errors.png")}
     figs["per-run RMSE"] = figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png", units=units)
-    if curves:
+    training = spec.training
+    if training and training.curves:
         # reference lines on the validation set the curves are on (never the evaluation data's RMSEs)
-        refs = {f"{k} (validation set)": v for k, v in (curve_references or {}).items()}
+        curves = training.curves
+        refs = {f"{k} (validation set)": v for k, v in training.references.items()}
         if scale is not None:  # validation RMSEs are logged in SI units
             k = scale.tolist()
             curves = {
@@ -328,85 +434,81 @@ def write_report(
         figs["learning curves"] = figures.plot_learning_curves(
             curves, s.state_names, out / "learning_curves.png", refs, units=units if scale is not None else None
         )
-    if window_rows:
-        figs["window study"] = figures.plot_window_study(window_rows, s.state_names, out / "window_study.png")
+    if spec.window_study:
+        rows = spec.window_study.rows
+        figs["window study"] = figures.plot_window_study(rows, s.state_names, out / "window_study.png")
+    return figs
 
-    lines = _header_lines(title, profile)
-    lines += [
+
+def _system_lines(study) -> list[str]:
+    s = study.system
+    return [
         f"System `{s.name}`, scenario `{s.scenario}`; {study.runs} runs × {study.steps} steps, evaluation seed "
         f"{study.seed} (disjoint from every training and validation seed). Every filter filters the same data "
         "and starts from the prior. Cost per estimate: median wall time per step of one trajectory streamed "
         f"through the filter's own loop after a warm-up, torch threads = {next(iter(study.results.values())).threads}.",
         "",
         *_dropout_lines(study),
-        "## Results",
-        "",
-        *(_state_columns_table(study, units) if per_state else _results_table(study)),
-        "",
-        *_reference_lines(study),
-        *(_paired_lines(study, paired_with, paired) if paired else []),
     ]
-    if requirements:
-        lines += ["## Requirements", ""]
-        for r in requirements:
-            verdict = "**met**" if r["met"] else "**not met**"
-            lines.append(f"- {r['requirement']}: {verdict}. {r.get('detail', '')}".rstrip())
-        lines.append("")
-    if window_rows:
-        lines += [
-            "## Sliding-window study (DAOF-v1)",
-            "",
-            "| N | RMSE | cost [ms] | paper RMSE β / r (for context) |",
-            "|---|---|---|---|",
-        ]
-        for r in window_rows:
-            paper = PAPER_WINDOWS.get(r["window"])
-            lines.append(
-                f"| {r['window']} | {_fmt(r['rmse'])} | {r['cost_ms']:.3f} | {_fmt(paper, 3) if paper else '–'} |"
-            )
-        lines.append("")
-    if training:
-        lines += [
-            "## Training cost",
-            "",
-            "| filter | samples (env steps) | updates | wall [s] | threads |",
-            "|---|---|---|---|---|",
-        ]
-        for name, t in training.items():
-            frames, updates = (f"{t[k]:,}" if k in t else "–" for k in ("frames", "updates"))
-            lines.append(f"| {name} | {frames} | {updates} | {t.get('wall_s', '–')} | {t.get('threads', '–')} |")
-        lines.append("")
-    if s.name == "veh2dof":
-        lines += [
-            "## The paper's Table I, for context",
-            "",
-            "The paper does not publish its system parameters; its absolute numbers are not comparable with ours, "
-            "only the ordering and ratios between filters are.",
-            "",
-            "| filter | RMSE β [rad] | RMSE r [rad/s] | cost [ms] |",
-            "|---|---|---|---|",
-            *[f"| {k} | {v[0]} | {v[1]} | {v[2]} |" for k, v in PAPER_TABLE_I.items()],
-            "",
-        ]
-    elif s.name == "veh14dof":
-        lines += [
-            "## The paper's Table II, for context",
-            "",
-            "The paper does not publish its vehicle parameters, manoeuvre or sensor set-up; its absolute numbers are "
-            "not comparable with ours, only the ordering and ratios between filters are.",
-            "",
-            "| filter | RMSE pitch [deg] | roll [deg] | yaw rate [deg/s] | side slip [deg] | Vx [km/h] | ax [g] "
-            "| cost [ms] |",
-            "|---|---|---|---|---|---|---|---|",
-            *["| " + " | ".join([k, *map(str, v)]) + " |" for k, v in PAPER_TABLE_II.items()],
-            "",
-        ]
-    if notes:
-        lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
-    lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
-    lines += _provenance_lines(info, meta)
-    (out / "report.md").write_text("\n".join(lines))
-    return out / "report.md"
+
+
+def _requirement_lines(requirements: list[Requirement]) -> list[str]:
+    if not requirements:
+        return []
+    lines = ["## Requirements", ""]
+    for r in requirements:
+        verdict = "**met**" if r.met else "**not met**"
+        lines.append(f"- {r.requirement}: {verdict}. {r.detail}".rstrip())
+    return lines + [""]
+
+
+def _window_lines(window_study: WindowStudy | None, paper: PaperTable | None) -> list[str]:
+    if not window_study:
+        return []
+    context = paper.windows if paper is not None else {}
+    extra = f" {paper.windows_column} |" if context else ""
+    lines = [
+        f"## Sliding-window study ({window_study.filter})",
+        "",
+        "| N | RMSE | cost [ms] |" + extra,
+        "|---|---|---|" + ("---|" if context else ""),
+    ]
+    for r in window_study.rows:
+        row = f"| {r['window']} | {_fmt(r['rmse'])} | {r['cost_ms']:.3f} |"
+        if context:
+            row += f" {_fmt(context[r['window']], 3) if r['window'] in context else '–'} |"
+        lines.append(row)
+    return lines + [""]
+
+
+def _training_lines(costs: dict[str, dict]) -> list[str]:
+    if not costs:
+        return []
+    lines = [
+        "## Training cost",
+        "",
+        "| filter | samples (env steps) | updates | wall [s] | threads |",
+        "|---|---|---|---|---|",
+    ]
+    for name, t in costs.items():
+        frames, updates = (f"{t[k]:,}" if k in t else "–" for k in ("frames", "updates"))
+        lines.append(f"| {name} | {frames} | {updates} | {t.get('wall_s', '–')} | {t.get('threads', '–')} |")
+    return lines + [""]
+
+
+def _paper_lines(paper: PaperTable | None) -> list[str]:
+    if paper is None:
+        return []
+    return [
+        f"## The paper's Table {paper.number}, for context",
+        "",
+        paper.caveat,
+        "",
+        "| filter | " + " | ".join(paper.columns) + " |",
+        "|---|" + "---|" * len(paper.columns),
+        *["| " + " | ".join([k, *map(str, v)]) + " |" for k, v in paper.rows.items()],
+        "",
+    ]
 
 
 def scenario_winners(study) -> dict:

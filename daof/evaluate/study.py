@@ -23,7 +23,7 @@ from daof.envs.system import StochasticSystem
 from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
-from daof.train.checkpoint import atomic_save
+from daof.io import atomic_save, safe_load
 
 __all__ = ["FilterResult", "Study", "run_study"]
 
@@ -170,9 +170,9 @@ def _read_cache(path: Path, log) -> dict | None:
     if not path.is_file():
         return None
     try:
-        blob = torch.load(path, weights_only=False)
-    except Exception as error:  # truncated or foreign file: torch / pickle raise many kinds
-        log(f"unreadable cache entry {path} ({type(error).__name__}); computing it again")
+        blob = safe_load(path, map_location=None)  # plain data only: a crafted entry is refused, never run
+    except ValueError as error:  # truncated, foreign or crafted file
+        log(f"unreadable cache entry: {error}; computing it again")
         return None
     return blob if isinstance(blob, dict) and {"key", "result", "estimates"} <= blob.keys() else None
 

@@ -62,7 +62,7 @@ class TorchModel:
 
 
 class NumpyModel:
-    """A numpy transcription of a system's nominal f and g, batched over leading dims.
+    """A system's own numpy f and g (``f_numpy``, ``g_numpy``), batched over leading dims.
 
     The functions are complex-analytic, so the Jacobians come from the complex step
     ∂f/∂x_j = Im f(x + i h e_j) / h, exact to rounding (no subtractive cancellation).
@@ -86,53 +86,19 @@ class NumpyModel:
         return self._jacobian(self.g, x, u)
 
 
-def _veh2dof_numpy(system) -> NumpyModel:
-    """specs/veh2dof.md: α_f, α_r, Magic-Formula F_y, explicit Euler f, g = [a_y, r]."""
-    p, Fzf, Fzr, dt = system.p, system.Fzf, system.Fzr, system.dt
-
-    def tyre(alpha, Fz):
-        Ba = p.B * alpha
-        return -p.mu * Fz * np.sin(p.C * np.arctan(Ba - p.E * (Ba - np.arctan(Ba))))
-
-    def forces(x, u):
-        beta, r, delta = x[..., 0], x[..., 1], u[..., 0]
-        Fyf = tyre(beta + p.lf * r / p.vx - delta, Fzf)
-        Fyr = tyre(beta - p.lr * r / p.vx, Fzr)
-        return Fyf * np.cos(delta), Fyr
-
-    def f(x, u):
-        Fyf_c, Fyr = forces(x, u)
-        beta_dot = (Fyf_c + Fyr) / (p.m * p.vx) - x[..., 1]
-        r_dot = (p.lf * Fyf_c - p.lr * Fyr) / p.Iz
-        return x + dt * np.stack([beta_dot, r_dot], -1)
-
-    def g(x, u):
-        Fyf_c, Fyr = forces(x, u)
-        return np.stack([(Fyf_c + Fyr) / p.m, x[..., 1]], -1)
-
-    return NumpyModel(f, g, system.state_dim)
-
-
-def _linear_numpy(system) -> NumpyModel:
-    """x_{t+1} = A x_t + B u_t, y_t = C x_t with the system's own (float32-valued) matrices."""
-    A, B, C = (m.double().cpu().numpy() for m in (system.A, system.B, system.C))
-    return NumpyModel(lambda x, u: x @ A.T + u @ B.T, lambda x, u: x @ C.T, system.state_dim)
-
-
-_NUMPY_MODELS = {"veh2dof": _veh2dof_numpy, "linear": _linear_numpy}
-
-
 def make_model(system: StochasticSystem, kind: str = "auto"):
-    """``"numpy"`` (a transcription, where one exists), ``"torch"`` (any system) or ``"auto"``.
+    """``"numpy"`` (the system's own numpy model, where it has one: ``system.has_numpy_model``),
+    ``"torch"`` (any system) or ``"auto"``.
 
-    ``auto`` prefers numpy: on veh2dof a call of f is ~8× and of F ~25× cheaper in numpy than
+    ``auto`` prefers numpy: on veh2dof a call of f is ~2× and of F ~20× cheaper in numpy than
     through torch on a tiny tensor (``benchmarks/bench_classical.py --models``,
-    docs/benchmarks/classical.md).
+    docs/benchmarks/classical.md). No system is picked by name: a subclass that changes ``f`` or
+    ``g`` without its numpy twin gets the torch model.
     """
     if kind not in ("auto", "numpy", "torch"):
         raise ValueError(f"model must be 'auto', 'numpy' or 'torch', got {kind!r}")
-    if kind != "torch" and system.name in _NUMPY_MODELS:
-        return _NUMPY_MODELS[system.name](system)
+    if kind != "torch" and system.has_numpy_model:
+        return NumpyModel(system.f_numpy, system.g_numpy, system.state_dim)
     if kind == "numpy":
         raise ValueError(f"no numpy model for system {system.name!r}; use model='torch'")
     return TorchModel(system)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
@@ -22,28 +23,49 @@ from tqdm import tqdm
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
+from daof.io import atomic_write_text
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
+from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
 
-__all__ = ["FilterTrainer"]
+__all__ = ["RUN_CONFIG", "FilterTrainer", "comparable_config"]
+
+
+#: the files a training run writes into its directory
+RUN_FILES = (RUN_CONFIG, "best.pt", "final.pt", "checkpoint.pt", "summary.json", "learning_curve.csv",
+             "learning_curve.png")  # fmt: skip
+#: config keys a run may change when it is resumed
+RESUMABLE_CHANGES = ("resume", "output_dir", "threads", "collector.total_frames", "logger.backend", "logger.mode")
+
+
+def comparable_config(config: dict) -> dict:
+    """A resolved config as flat ``a.b`` keys, without the keys a resumed run may change."""
+
+    def flat(node, prefix=""):
+        for key, value in node.items():
+            if isinstance(value, dict) and value:
+                yield from flat(value, f"{prefix}{key}.")
+            else:
+                yield f"{prefix}{key}", value
+
+    return {k: v for k, v in flat(config) if k not in RESUMABLE_CHANGES}
 
 
 class FilterTrainer:
     """Base of the training runs; ``kind`` is the filter kind (``DAOF-v1``, ``DAOF-v2``, ``SLF``)."""
-
-    #: config fields a resumed checkpoint must agree on
-    identity_keys = ("system", "scenario", "window")
 
     def __init__(self, cfg: DictConfig, kind: str):
         self.cfg = cfg
         torch.set_num_threads(int(cfg.threads))
         torch.manual_seed(int(cfg.seed))
         self.out = Path(cfg.output_dir)
-        self.out.mkdir(parents=True, exist_ok=True)
-        # what experiments compare before they reuse or resume this directory (daof.evaluate.jobs)
-        resolved = OmegaConf.to_container(cfg, resolve=True)
-        (self.out / RUN_CONFIG).write_text(json.dumps(resolved, indent=2))
-        self.system = make_system(cfg.system, cfg.scenario, **(cfg.get("overrides") or {}))
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except PermissionError as error:
+            raise ValueError(f"cannot write the run directory {self.out}: {error.strerror}") from None
+        self._lock = None
+        self._resumed = False
+        self.system = make_system(cfg.system, cfg.scenario, **cfg.overrides)
         net = cfg.network
         self.filter = LearnedFilter(
             FilterConfig(
@@ -54,15 +76,13 @@ class FilterTrainer:
                 include_controls=bool(cfg.include_controls),
                 num_cells=int(net.num_cells),
                 depth=int(net.depth),
-                correction_sigmas=float(net.get("correction_sigmas", 4.0)),
-                correction_bound=str(net.get("correction_bound", "kalman")),
-                startup_input=bool(net.get("startup_input", True)),
-                innovation_input=bool(net.get("innovation_input", True)),
-                # DAOF-v1's alone: a config shared by v1 and v2 runs (the recipes') may set it
-                reference_gain=bool(net.get("reference_gain", False)) and kind == "DAOF-v1",
-                window_padding=str(net.get("window_padding", "same")),
-                v2_action=str(net.get("v2_action", "estimate")),
-                missing_mask=bool(net.get("missing_mask", False)),
+                correction_sigmas=float(net.correction_sigmas),
+                correction_bound="posterior",
+                startup_input=bool(net.startup_input),
+                innovation_input=True,
+                reference_gain=kind == "DAOF-v1",
+                v2_action=str(net.v2_action),
+                missing_mask=bool(net.missing_mask),
             ),
             self.system,
         )
@@ -74,10 +94,28 @@ class FilterTrainer:
         self.wall = 0.0
         self.history: list[dict] = []
         self.best: dict = {"score": math.inf, "frames": 0}
+        #: the best filter's weights and metadata, kept in the checkpoint so that ``best.pt`` matches it on resume
+        self._best_filter: dict | None = None
         self.logger = None
         self._logger_state = None
         self._clock_start = None
         self._next_ckpt = int(cfg.checkpoint.every_frames)
+
+    def _set_aside_previous_run(self) -> None:
+        """A fresh run in a directory that holds another run moves that run's files to ``<dir>/previous-<k>``.
+
+        So a directory never mixes the files of two runs (a ``best.pt`` of one under the config of another).
+        """
+        old = [p for p in self.out.iterdir() if p.name in RUN_FILES or p.name in ("logs", "train_logs")]
+        if not any(p.name in RUN_FILES for p in old):
+            return
+        k = 1
+        while (target := self.out / f"previous-{k}").exists():
+            k += 1
+        target.mkdir()
+        for path in old:
+            shutil.move(str(path), str(target / path.name))
+        print(f"{self.out} held another run: moved it to {target}")
 
     @property
     def training_gaps(self) -> tuple[float, float]:
@@ -85,17 +123,15 @@ class FilterTrainer:
 
         (0, 0) when the config has none: complete training data.
         """
-        gaps = self.cfg.get("dropout")
-        return (float(gaps.p_max), float(gaps.blackout_s)) if gaps is not None else (0.0, 0.0)
+        gaps = self.cfg.dropout
+        return float(gaps.p_max), float(gaps.blackout_s)
 
     def lr_factor(self) -> float:
         """Learning-rate factor on a cosine from 1 to ``optim.lr_final`` (default 1) over ``collector.total_frames``.
 
         A function of the frame count only, so a resumed run continues the same schedule.
         """
-        final = float(self.cfg.optim.get("lr_final", 1.0))
-        if not 0.0 < final <= 1.0:
-            raise ValueError(f"optim.lr_final must be in (0, 1], got {final}")
+        final = float(self.cfg.optim.lr_final)
         progress = min(self.frames / int(self.cfg.collector.total_frames), 1.0)
         return final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
@@ -122,8 +158,10 @@ class FilterTrainer:
                 "best": self.best,
                 "next_ckpt": self._next_ckpt,
             },
+            "best_filter": self._best_filter,
             "config": OmegaConf.to_container(self.cfg, resolve=True),
             "filter": self.filter.state_dict(),
+            "filter_config": dict(vars(self.filter.config)),  # what load_filter rebuilds the filter from
             "rng": capture_rng(self.generators()),
             "logger": self.logger.state_dict() if self.logger is not None else None,
             **self.extra_state(),
@@ -138,16 +176,24 @@ class FilterTrainer:
         self.history, self.best = list(t["history"]), dict(t["best"])
         self._next_ckpt = t["next_ckpt"]
         self._logger_state = blob.get("logger")
+        self._best_filter = blob.get("best_filter")
+        self._restore_best_file()
 
     def resume(self, path: str | Path) -> None:
-        """Continue the run saved at ``path`` (refuses a checkpoint of another run)."""
+        """Continue the run saved at ``path``; a checkpoint of another config is refused (``ValueError``).
+
+        Only what may change between a run and its continuation may differ: the budget
+        (``collector.total_frames``), where it is written, the thread count and the logger.
+        """
         blob = load_checkpoint(path)
-        saved = blob["config"]
-        for key in self.identity_keys:
-            if saved.get(key) != self.cfg.get(key):
-                raise ValueError(
-                    f"checkpoint {path} is for {key}={saved.get(key)!r}, this run has {self.cfg.get(key)!r}"
-                )
+        saved = comparable_config(blob["config"])
+        now = comparable_config(OmegaConf.to_container(self.cfg, resolve=True))
+        if saved != now:
+            diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+            key = diff[0]
+            raise ValueError(f"checkpoint {path} is for {key}={saved.get(key)!r}, this run has {now.get(key)!r}")
+        self._lock = lock_run_directory(self.out)  # before the files it restores are touched
+        self._resumed = True
         self.load_state_dict(blob)
 
     def save_checkpoint(self) -> Path:
@@ -161,10 +207,24 @@ class FilterTrainer:
 
     def save_filter(self, name: str) -> Path:
         path = self.out / name
-        meta = {"frames": self.frames, "updates": self.updates, "wall_s": self.wall, "history": self.history}
+        meta = {"frames": self.frames, "updates": self.updates, "wall_s": self.wall, "history": list(self.history)}
         with self.deployed_weights():
             self.filter.save(path, extra=meta)
+            if name == "best.pt":
+                weights = {k: v.detach().clone() for k, v in self.filter.state_dict().items()}
+                self._best_filter = {"state_dict": weights, "extra": meta}
         return path
+
+    def _restore_best_file(self) -> None:
+        """After a resume ``best.pt`` is the checkpoint's best, not one a discarded stretch of training wrote."""
+        path = self.out / "best.pt"
+        if self._best_filter is None:
+            path.unlink(missing_ok=True)
+            return
+        current = {k: v.detach().clone() for k, v in self.filter.state_dict().items()}
+        self.filter.load_state_dict(self._best_filter["state_dict"])
+        self.filter.save(path, extra=self._best_filter["extra"])
+        self.filter.load_state_dict(current)
 
     # ----------------------------------------------------------------- validation and logging
     @torch.no_grad()
@@ -187,12 +247,31 @@ class FilterTrainer:
     @torch.no_grad()
     def reference_rmse(self) -> dict[str, list[float]]:
         """A UKF's RMSE per state on the same validation set (systems with a model), for comparison."""
-        if not self.system.has_model or not self.cfg.validation.get("ukf_reference", True):
+        if not self.system.has_model or not self.cfg.validation.ukf_reference:
             return {}
         return {"UKF": rmse_per_state(UKF(self.system).run(self.val_data), self.val_data["state"]).tolist()}
 
+    def _claim_directory(self) -> None:
+        """Lock the run directory, move another run's files aside (a fresh run) and record the config.
+
+        ``run_config.json`` is what experiments compare before they reuse or resume a directory
+        (``daof.experiments.jobs``).
+        """
+        if self._lock is None:
+            self._lock = lock_run_directory(self.out)
+        if not self._resumed:
+            self._set_aside_previous_run()
+        resolved = OmegaConf.to_container(self.cfg, resolve=True)
+        atomic_write_text(self.out / RUN_CONFIG, json.dumps(resolved, indent=2))
+
+    def _release_directory(self) -> None:
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
+
     def start(self, total: int) -> tqdm:
-        """Open the logger and the progress bar; start the wall clock (continuing a resumed one)."""
+        """Claim the directory, open the logger and the progress bar, start the wall clock (a resumed run's goes on)."""
+        self._claim_directory()
         lc = self.cfg.logger
         if lc.backend:
             kwargs = {}
@@ -252,5 +331,6 @@ class FilterTrainer:
             "validation_references": references,
             "timing_s": {k: v for k, v in timeit.todict().items()},
         }
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        atomic_write_text(self.out / "summary.json", json.dumps(summary, indent=2, default=str))
+        self._release_directory()
         return summary

@@ -29,21 +29,19 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
 from daof.envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
-from daof.envs.gaps import GappySystem
 from daof.envs.history import FRAME_KEY, with_window
 from daof.envs.recorded import find_recorded
 from daof.losses import DSACTLoss
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
-from daof.train.sampling import ReplayPriority, WeightedSampler
+from daof.train.policies import exploration_policy, stochastic_actor
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
 
 __all__ = ["DSACTTrainer"]
 
 #: keys the replay buffer does not need (the per-step frame is inside the window already)
 _DROP_KEYS = [FRAME_KEY, ("next", FRAME_KEY), "loc", "scale", "reward_per_state", FEEDBACK_KEY]
-_PRIORITY_KEY = "sample_priority"
 #: largest exploration std of the automatic entropy target, in units of the action's half-range
 MAX_EXPLORATION_STD = 0.3
 _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll")
@@ -52,13 +50,10 @@ _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll
 class DSACTTrainer(FilterTrainer):
     """Owns every piece of one DSAC-T training run; ``train()`` runs (or resumes) it."""
 
-    identity_keys = ("system", "scenario", "window", "version")
-
     def __init__(self, cfg: DictConfig):
-        kind = {"v1": "DAOF-v1", "v2": "DAOF-v2"}.get(cfg.version)
-        if kind is None:
-            raise ValueError(f"version must be 'v1' or 'v2', got {cfg.version!r}")
-        super().__init__(cfg, kind)
+        if cfg.kind not in ("DAOF-v1", "DAOF-v2"):
+            raise ValueError(f"DSAC-T trains DAOF-v1 or DAOF-v2, not {cfg.kind!r}")
+        super().__init__(cfg, cfg.kind)
         self._make_schedules()
         if self.filter.config.reference_gain:
             self._start_at_the_reference()
@@ -73,31 +68,28 @@ class DSACTTrainer(FilterTrainer):
         """DAOF-v1's update bound and input scale, and the reward weights, per start-up step.
 
         All come from one UKF run (``daof.train.schedules``), so they need a model;
-        ``network.correction_bound=process`` and ``reward.weights=constant`` switch the bound and
-        the weights off. Deterministic in ``seeds.normalizer``, so a resumed run rebuilds the same.
+        ``reward.weights=constant`` switches the weights off. Deterministic in ``seeds.normalizer``,
+        so a resumed run rebuilds the same.
         """
         cfg = self.cfg
         self.reward_weights = None
-        mode = cfg.get("reward", {}).get("weights", "kalman")
-        if mode not in ("kalman", "kalman_shared", "constant"):
-            raise ValueError(f"reward.weights must be 'kalman', 'kalman_shared' or 'constant', got {mode!r}")
+        mode = cfg.reward.weights
         if not self.system.has_model or not (self.filter.config.kind == "DAOF-v1" or mode != "constant"):
             return
         schedule = ukf_schedule(self.system, seed=int(cfg.seeds.normalizer) + 1)
         self.filter.set_schedules(schedule)
         if mode != "constant":
-            shared = mode == "kalman_shared"
-            self.reward_weights = reward_weight_schedule(self.system, schedule["estimate"], shared)
+            self.reward_weights = reward_weight_schedule(self.system, schedule["estimate"])
 
     def _make_loss(self) -> None:
         cfg = self.cfg
-        per_state = bool(cfg.loss.get("critic_per_state", False))
+        per_state = bool(cfg.loss.critic_per_state)
         # a critic per state: the reward is a sum of per-state terms, each learned on its own
         terms = self.system.state_dim if per_state else 1
-        form = str(cfg.network.get("critic_form", "mlp"))
+        form = str(cfg.network.critic_form)
         # "own": each of the two critics keeps its own init (the quadratic critic's m(h) = 0, the
         # window init); "resampled": one critic that TorchRL copies and re-samples (the pre-session-15 runs)
-        init = str(cfg.network.get("critic_init", "own"))
+        init = str(cfg.network.critic_init)
         if init not in ("own", "resampled"):
             raise ValueError(f"network.critic_init must be 'own' or 'resampled', got {init!r}")
         weights = None
@@ -105,7 +97,7 @@ class DSACTTrainer(FilterTrainer):
             if float(cfg.loss.gamma) != 0.0:
                 raise ValueError("network.critic_form=reward_quadratic is exact only with loss.gamma=0")
             weights = self.reward_weights if self.reward_weights is not None else default_reward_weights(self.system)
-        scale = str(cfg.network.get("critic_scale", "window"))
+        scale = str(cfg.network.critic_scale)
         critics = [
             make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form, weights, scale)
             for _ in range(2 if init == "own" else 1)
@@ -114,15 +106,14 @@ class DSACTTrainer(FilterTrainer):
             self._init_window(critic.module.mlp)
         self.critic = critics[0]
         self.loss = DSACTLoss(
-            self.filter.stochastic_actor(),
+            stochastic_actor(self.filter),
             critics if len(critics) > 1 else self.critic,
             num_qvalue_nets=2,
             target_entropy=self.target_entropy(),
             alpha_init=float(cfg.loss.alpha_init),
-            mean_weighting=str(cfg.loss.get("mean_weighting", "variance")),
-            epsilon=float(cfg.loss.get("epsilon", 0.1)),
+            epsilon=float(cfg.loss.epsilon),
             reward_components=terms,
-            actor_samples=int(cfg.loss.get("actor_samples", 1)),
+            actor_samples=int(cfg.loss.actor_samples),
         )
         self.loss.set_keys(action=self.filter.action_key)
         if per_state:
@@ -140,7 +131,7 @@ class DSACTTrainer(FilterTrainer):
 
     def _init_window(self, mlp: torch.nn.Sequential) -> None:
         """``network.window_init=newest``: the network starts on the window's newest frame alone."""
-        init = str(self.cfg.network.get("window_init", "uniform"))
+        init = str(self.cfg.network.window_init)
         if init not in WINDOW_INITS:
             raise ValueError(f"network.window_init must be one of {WINDOW_INITS}, got {init!r}")
         if init == "newest":
@@ -155,7 +146,7 @@ class DSACTTrainer(FilterTrainer):
         explores around it, instead of from a random update.
         """
         n = self.system.state_dim
-        if self.cfg.loss.get("target_entropy", "auto") == "auto":
+        if self.cfg.loss.target_entropy == "auto":
             std = self.exploration_std()
         else:  # the same std on every state, with the fixed target's entropy
             std = torch.full((n,), math.exp(self.target_entropy() / n) / math.sqrt(2 * math.pi * math.e))
@@ -168,7 +159,7 @@ class DSACTTrainer(FilterTrainer):
     def exploration_std(self) -> torch.Tensor:
         """Per state, the std of the entropy target's exploration noise in action units (``target_entropy``)."""
         width = self.filter.high - self.filter.low
-        k = float(self.cfg.loss.get("exploration_std", 0.4))
+        k = float(self.cfg.loss.exploration_std)
         if k <= 0:
             raise ValueError(f"loss.exploration_std must be > 0, got {k}")
         return torch.minimum(k * self.system.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
@@ -189,7 +180,7 @@ class DSACTTrainer(FilterTrainer):
         below that bound).
         """
         width = self.filter.high - self.filter.low  # the actor's action range (2 for an update in [−1, 1])
-        fixed = self.cfg.loss.get("target_entropy", "auto")
+        fixed = self.cfg.loss.target_entropy
         if fixed != "auto":
             most = float(width.log().sum())
             if float(fixed) >= most:
@@ -202,29 +193,19 @@ class DSACTTrainer(FilterTrainer):
     def _make_data(self) -> None:
         cfg = self.cfg
         c = cfg.collector
-        system, flags = self.system, self.filter.config.missing_mask
-        if flags or any(self.training_gaps):  # episodes with random sensor gaps (envs.gaps)
-            system = GappySystem(system, *self.training_gaps, int(c.episode_steps))
         env = FilteringEnv(
-            system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
+            self.system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
         )
         self.base_env = env
-        baseline = str(cfg.get("reward", {}).get("baseline", "none"))
+        baseline = str(cfg.reward.baseline)
         if baseline not in BASELINES:
             raise ValueError(f"reward.baseline must be one of {BASELINES}, got {baseline!r}")
         if baseline != "none" and float(cfg.loss.gamma) != 0.0:
             raise ValueError("reward.baseline keeps the actor's objective only with loss.gamma=0")
         self.baseline = ZeroActionBaseline(self.filter, env.reward_weights) if baseline != "none" else None
-        self.env = with_window(
-            env, int(cfg.window), self.filter.uses_controls, self.filter.config.window_padding, missing_flags=flags
-        )
-        size = int(cfg.buffer.size)
-        self.priority = ReplayPriority.from_config(cfg.buffer, self.system.state_dim)
-        sampler = WeightedSampler(size) if self.priority.active else None
+        self.env = with_window(env, self.filter.layout)
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(size),
-            sampler=sampler,
-            priority_key=_PRIORITY_KEY,
+            storage=LazyTensorStorage(int(cfg.buffer.size)),
             batch_size=int(cfg.optim.batch_size),
         )
 
@@ -236,7 +217,7 @@ class DSACTTrainer(FilterTrainer):
         scores. It changes which h the data visit, not the value of an action, only at γ = 0
         (with γ > 0 an action's value includes its effect on the next window), so γ > 0 is refused.
         """
-        mode = str(self.cfg.collector.get("feedback", "sample"))
+        mode = str(self.cfg.collector.feedback)
         if mode == "mean" and float(self.cfg.loss.gamma) != 0.0:
             raise ValueError("collector.feedback=mean keeps each action's value only with loss.gamma=0")
         return mode
@@ -246,7 +227,7 @@ class DSACTTrainer(FilterTrainer):
         frames_per_batch = int(c.env_batch) * int(c.steps_per_batch)
         return Collector(
             self.env,
-            self.filter.exploration_policy(self.feedback()),
+            exploration_policy(self.filter, self.feedback()),
             frames_per_batch=frames_per_batch,
             total_frames=max(remaining, frames_per_batch),
             auto_register_policy_transforms=False,
@@ -255,7 +236,7 @@ class DSACTTrainer(FilterTrainer):
     def deployed_weights(self) -> AbstractContextManager:
         """``validation.actor``: the filter validated and saved is the online actor (``online``)
         or DSAC-T's Polyak-averaged target actor (``target``), swapped in for the duration."""
-        which = str(self.cfg.validation.get("actor", "online"))
+        which = str(self.cfg.validation.actor)
         if which == "online":
             return nullcontext()
         if which == "target":
@@ -326,12 +307,10 @@ class DSACTTrainer(FilterTrainer):
 
     def to_replay(self, batch: TensorDictBase) -> TensorDictBase:
         """A collected batch as flat replay transitions: unused keys dropped, the reward baseline
-        taken off (``reward.baseline``), the sampling weight set (``buffer.*_priority``)."""
+        taken off (``reward.baseline``)."""
         batch = batch.reshape(-1).exclude(*_DROP_KEYS)
         if self.baseline is not None:
             batch = self.baseline.subtract(batch)
-        if self.priority.active:
-            batch[_PRIORITY_KEY] = self.priority(batch["step"], batch["prev_estimate"])
         return batch
 
     def set_learning_rates(self) -> float:

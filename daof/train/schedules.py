@@ -29,7 +29,7 @@ def ukf_schedule(system: StochasticSystem, seed: int, runs: int = 16) -> dict[st
     return {key: value.float() for key, value in UKF(system).covariance_schedule(data).items()}
 
 
-def reward_weight_schedule(system: StochasticSystem, error_std: torch.Tensor, shared: bool = False) -> torch.Tensor:
+def reward_weight_schedule(system: StochasticSystem, error_std: torch.Tensor) -> torch.Tensor:
     """W_t = W · ρ_t per step, [steps, n]; W = 1/(n · error_scale²) is the env's default.
 
     ρ_t = min(1, (σ_settled / σ_t)²), made non-decreasing in t (running max), with σ_t the given
@@ -40,17 +40,9 @@ def reward_weight_schedule(system: StochasticSystem, error_std: torch.Tensor, sh
     Scaling by the prediction error √diag P⁻_t instead was measured worse: it leaves the start-up
     so cheap that the entropy bonus puts the actor's widest exploration there, and the squashed
     loc (the deterministic filter) then overshoots the first updates 1.6–2.4× (docs/veh2dof_training.md).
-
-    ``shared``: one ρ_t for all states, the ratio of the expected settled reward to the expected
-    reward at t, Σ W σ_settled² / Σ W σ_t², so the states keep their settled relative weights in the
-    start-up (per state, a state whose error starts far above its settled one is down-weighted most).
     """
     n = system.state_dim
     weights = 1.0 / (n * system.error_scale.float() ** 2)
     settled = error_std[len(error_std) // 2 :].mean(0)
-    if shared:
-        ratio = (weights * settled**2).sum() / (weights * error_std**2).sum(-1, keepdim=True).clamp_min(1e-12)
-        ratio = ratio.expand_as(error_std)
-    else:
-        ratio = (settled / error_std.clamp_min(1e-12)).pow(2)
+    ratio = (settled / error_std.clamp_min(1e-12)).pow(2)
     return ratio.clamp(max=1.0).cummax(0).values * weights

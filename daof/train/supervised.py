@@ -18,7 +18,6 @@ from omegaconf import DictConfig
 from torchrl._utils import timeit
 
 from daof.envs.gaps import training_dropout_mask
-from daof.filters.learned import sliding_windows
 from daof.train.base import FilterTrainer
 
 __all__ = ["SLFTrainer", "gap_seed"]
@@ -36,6 +35,8 @@ class SLFTrainer(FilterTrainer):
     """Regression of x_t on the open-loop window; ``train()`` runs (or resumes) it."""
 
     def __init__(self, cfg: DictConfig):
+        if cfg.kind != "SLF":
+            raise ValueError(f"the supervised trainer trains the SLF, not {cfg.kind!r}")
         super().__init__(cfg, "SLF")
         self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(cfg.optim.lr))
         s = self.system
@@ -64,7 +65,7 @@ class SLFTrainer(FilterTrainer):
             mask = training_dropout_mask(tuple(y.shape), *self.training_gaps, self.system.dt, generator)
             y = y.masked_fill(mask, float("nan"))
         frames = self.filter.open_loop_frames(y, data["control"], data["prev_control"])
-        windows = sliding_windows(frames, int(self.cfg.window))
+        windows = self.filter.layout.sliding_windows(frames)
         return windows.flatten(0, 1), data["state"].flatten(0, 1)
 
     def train(self) -> dict:

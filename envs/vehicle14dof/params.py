@@ -87,6 +87,9 @@ class Vehicle14DOFParams:
     dist_weights: tuple[float, float] = (0.9, 0.1)
     dist_scale: tuple[float, float] = (100.0, 50.0)  # std of the first component
     dist_std_ratio: tuple[float, float] = (1.0, 10.0)  # component stds in units of dist_scale
+    # one component per draw for both channels (§0: 100 N with 50 N m, or 1000 N with 500 N m);
+    # False draws it per channel (the simulator's data before this was fixed)
+    dist_joint: bool = True
     # §8 sensors: Laplace noise with these standard deviations (b = σ/√2)
     wheel_speed_std: float = 0.1  # rad/s
     steer_std_deg: float = 0.1

@@ -79,7 +79,7 @@ class Vehicle14DOF(StochasticSystem):
         self.state_low = torch.tensor([-3.0, -10.0, -60.0, -15.0, 40.0, -0.5]) / self.report_scale
         self.state_high = torch.tensor([3.0, 10.0, 60.0, 15.0, 100.0, 0.5]) / self.report_scale
         w = p.dist_weights
-        self.process_noise = GaussianMixtureNoise(w, (0.0, 0.0), p.dist_std_ratio, p.dist_scale)
+        self.process_noise = GaussianMixtureNoise(w, (0.0, 0.0), p.dist_std_ratio, p.dist_scale, joint=p.dist_joint)
         b = laplace_scale(p)
         self._laplace = ChannelLaplaceNoise(b)
         self.measurement_noise = ChannelLaplaceNoise([*b, 0.0])
@@ -123,9 +123,16 @@ class Vehicle14DOF(StochasticSystem):
         std = torch.maximum(s.std(0, correction=0), 0.01 * self.error_scale.double())
         return GaussianNoise.diagonal(s.mean(0).float(), std.float())
 
+    def time(self, t: torch.Tensor) -> torch.Tensor:
+        """Simulated time t·Δt [s] of integer steps ``t``, the product taken in the internal dtype.
+
+        (``t * dt`` on a long tensor is a float32 product: a float64 run would get a float32 time base.)
+        """
+        return t.to(self.dtype) * self.dt
+
     def _observe(self, x, integ, t, man, dist, c: Constants):
         """Truth and clean channels at step t; the inputs are those of the next RK4 step (k1)."""
-        delta_sw, T_d, T_b, _ = drive_inputs(x, integ, (t * self.dt).to(self.dtype), man, c, self.p.h)
+        delta_sw, T_d, T_b, _ = drive_inputs(x, integ, self.time(t), man, c, self.p.h)
         _, aux = rhs(x, delta_sw, T_d, T_b, dist, c, with_aux=True)
         return truth(x, aux.a_x), clean_channels(x, delta_sw, aux, c)
 
@@ -136,7 +143,8 @@ class Vehicle14DOF(StochasticSystem):
         return TensorDict({"manoeuvre": man, "sensor": biases}, batch_size=[runs], device=device)
 
     def _disturbance(self, runs, generator, device) -> torch.Tensor:
-        """(F_d, M_d) at P [runs, 2], redrawn every filter step (§0)."""
+        """(F_d, M_d) at P [runs, 2], redrawn every filter step (§0): one mixture component per draw,
+        shared by the force and the moment (``params.dist_joint``)."""
         return self.process_noise.sample((runs,), generator).to(device=device, dtype=self.dtype)
 
     def _noise(self, runs, generator, device) -> torch.Tensor:
@@ -168,7 +176,7 @@ class Vehicle14DOF(StochasticSystem):
         x, integ = integrate_substeps(
             sim["x"],
             sim["integral"],
-            (sim["t"] * self.dt).to(self.dtype),
+            self.time(sim["t"]),
             self.n_sub,
             man,
             sim["disturbance"],

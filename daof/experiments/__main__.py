@@ -1,0 +1,6 @@
+"""``python -m daof.experiments experiment=veh2dof|linear|veh14dof [profile=tiny|quick|paper] [key=value ...]``."""
+
+from daof.experiments.experiment import main
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,388 @@
+"""The typed experiment configuration: what one experiment trains, studies and reports, per system.
+
+An experiment is a YAML file in ``daof/conf/experiment/`` (``veh2dof``, ``linear``, ``veh14dof``)
+over the dataclasses below, registered with Hydra's ConfigStore as ``experiment_schema``. What
+differs between experiments is config, not code: the learned rows (training filter, run
+directory, budget and overrides per profile), the classical filters and the study's reference,
+the report's layout, its checks and its notes. What belongs to a system (its scenarios, units and
+reporting scale, whether it has a model) is read from the system. ``compose_experiment`` composes
+and checks one; every problem (an unknown experiment, key, profile or scenario, a wrong type, an
+impossible value) is one ``ValueError`` line, raised before any work.
+
+Every key: ``docs/experiments.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import string
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.errors import HydraException
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from daof.evaluate.report import PAPER_TABLES, Layout
+from daof.train.config import CONF_DIR as TRAIN_CONF_DIR
+
+__all__ = [
+    "CLASSICAL_FILTERS",
+    "EXPERIMENT_DIR",
+    "NOTE_FIELDS",
+    "PARTICLE_FILTERS",
+    "ClassicalFilter",
+    "ConvergenceCheck",
+    "DropoutStudy",
+    "ExperimentConfig",
+    "LearnedRow",
+    "Profile",
+    "Tolerance",
+    "check_experiment",
+    "compose_experiment",
+    "experiment_names",
+    "for_scenario",
+    "note_fields",
+]
+
+#: the experiments: one YAML file each
+EXPERIMENT_DIR = TRAIN_CONF_DIR / "experiment"
+#: the classes of daof.filters an experiment may name as classical filters (particle filters need a count)
+CLASSICAL_FILTERS = ("EKF", "UKF", "KalmanFilter", "StationaryKalmanFilter", "ParticleFilter", "JointParameterPF")
+PARTICLE_FILTERS = ("ParticleFilter", "JointParameterPF")
+
+
+@dataclass
+class LearnedRow:
+    """One learned filter of the report: ``python -m daof.train filter=<filter> system=<system> window=N ...``."""
+
+    filter: str = MISSING  # the training's filter group: daof_v1 | daof_v2 | slf
+    dir: str | None = None  # run directory <output_root>/<dir>-N<window> (null: the filter, e.g. daof-v1)
+    overrides: list[str] = field(default_factory=list)  # training overrides of this row in every profile
+
+
+@dataclass
+class ClassicalFilter:
+    """One model-based filter of the study, a class of ``daof.filters`` built on the scenario's system."""
+
+    filter: str = MISSING  # EKF | UKF | KalmanFilter | StationaryKalmanFilter | ParticleFilter | JointParameterPF
+    seed: int = 0  # particle filters: their generator's seed (the count is the profile's particles[<name>])
+    scenarios: list[str] | None = None  # run on these scenarios only (null: on every one)
+
+
+@dataclass
+class Profile:
+    """One size of the experiment (tiny | quick | paper): the study's size and every budget."""
+
+    runs: int = MISSING  # Monte Carlo runs R
+    steps: int = MISSING  # steps T per run
+    frames: dict[str, int] = MISSING  # learned row -> training budget (samples)
+    particles: dict[str, int] = field(default_factory=dict)  # particle filter -> particle count
+    overrides: dict[str, list[str]] = field(default_factory=dict)  # learned row -> this profile's training overrides
+    windows: list[int] = field(default_factory=list)  # the window study's N (window_study's row at each)
+    system: dict[str, Any] = field(default_factory=dict)  # system parameters of the study and of every training
+
+
+@dataclass
+class Tolerance:
+    """A requirement on one filter: its RMSE ≤ ``tolerance`` × the study reference's, per state."""
+
+    tolerance: float = MISSING
+    settled_step: int | None = None  # also every filter's ratios over the steps after this one (start-up excluded)
+
+
+@dataclass
+class ConvergenceCheck:
+    """Is a particle filter converged? Run again with twice its particles; its RMSE should barely move."""
+
+    filter: str = MISSING  # a particle filter of `classical`
+    seed: int = 3  # the doubled filter's seed
+    limit_percent: float = 1.0  # what the protocol asks: the RMSE changes by less than this per state
+    scenarios: list[str] | None = None  # run on these scenarios only (null: on every one)
+
+
+@dataclass
+class DropoutStudy:
+    """The same study once more with sensor gaps (``daof.evaluate.Dropout``) -> <report_dir>/dropout/."""
+
+    enabled: bool = False
+    p: float = 0.1  # each channel missing with this probability per step
+    blackout: list[Any] | None = None  # [channel, start_s, duration_s]: that channel lost in every run (null: none)
+    seed: int = 0
+
+
+@dataclass
+class ExperimentConfig:
+    system: str = MISSING  # a registered system name (daof.envs.make_system)
+    title: str = MISSING  # the report's title; {scenario} is replaced by the scenario
+    root: str = MISSING  # results root of one profile
+    profile: str = "quick"
+    profiles: dict[str, Profile] = MISSING
+    scenario: str = "nominal"  # the one scenario of a default run
+    scenarios: list[str] = field(default_factory=lambda: ["${scenario}"])  # several: each, plus a combined report
+    output_root: str = "${root}/${scenario}"  # one scenario's trainings, study cache and report
+    report_dir: str = "${output_root}/report"
+    combined_report_dir: str = "${root}/report"  # written when there are several scenarios
+    cache_dir: str | None = None  # memoise the study's simulated data here (daof.envs.recorded); null: simulate
+    seed: int = 20261122  # evaluation seed: disjoint from training (1..) and validation (9100) seeds
+    training_seed: int = 1
+    window: int = 20  # N of every learned row (the window study's row also at the profile's windows)
+    parallel_jobs: int = 2  # trainings run as subprocesses, one torch thread each
+    timing_threads: int = 1  # torch threads while timing cost per estimate
+    learned: dict[str, LearnedRow] = field(default_factory=dict)  # report row -> its training, in report order
+    training_overrides: list[str] = field(default_factory=list)  # overrides of every training
+    window_study: str | None = None  # a learned row trained again at every N of the profile's windows
+    classical: dict[str, ClassicalFilter] = field(default_factory=dict)  # study row -> model-based filter
+    reference: list[str] = field(default_factory=list)  # the study's reference: the first of these that runs
+    convergence_check: ConvergenceCheck | None = None
+    requirements: dict[str, Tolerance] = field(default_factory=dict)  # filter -> its tolerance to the reference
+    report: Layout = field(default_factory=Layout)
+    dropout: DropoutStudy = field(default_factory=DropoutStudy)
+    notes: list[str] = field(default_factory=list)  # the report's notes; {field} placeholders: note_fields
+    scenario_notes: dict[str, list[str]] = field(default_factory=dict)  # scenario -> notes on that scenario only
+    combined_notes: list[str] = field(default_factory=list)  # notes of the combined report
+
+
+#: the placeholders a note may use, and what they are
+NOTE_FIELDS = {
+    "system": "the system's name",
+    "scenario": "the scenario",
+    "profile": "the profile's name",
+    "seed": "the evaluation seed",
+    "training_seed": "the training seed",
+    "window": "N of the learned rows",
+    "runs": "the profile's runs",
+    "steps": "the profile's steps",
+    "frames": "learned row -> budget ({frames[SLF]})",
+    "particles": "particle filter -> count ({particles[PF]})",
+    "windows": "the window study's N",
+    "overrides": "learned row -> its overrides beyond the common ones, or 'none' ({overrides[SLF]})",
+    "train": "learned row -> its resolved training config ({train[SLF].optim.lr})",
+    "networks": "every learned filter's network: '<row>: <depth> × <cells> GELU, N = <window>; ...'",
+}
+
+
+def note_fields(template: str) -> set[str]:
+    """The placeholder names a note template uses (``{particles[PF]}`` -> ``particles``)."""
+    names = set()
+    for _, name, _, _ in string.Formatter().parse(template):
+        if name is not None:
+            names.add(name.split(".")[0].split("[")[0])
+    return names
+
+
+def experiment_names() -> list[str]:
+    return sorted(p.stem for p in EXPERIMENT_DIR.glob("*.yaml"))
+
+
+def register_configs() -> None:
+    """Register the schema (``defaults: [experiment_schema, _self_]`` in ``daof/conf/experiment/*.yaml``)."""
+    ConfigStore.instance().store(name="experiment_schema", node=ExperimentConfig)
+    OmegaConf.register_new_resolver("abspath", lambda p: None if p is None else str(Path(p).resolve()), replace=True)
+
+
+# ----------------------------------------------------------------------------------------- keys
+def _dataclass_of(tp) -> type | None:
+    """The dataclass a field's type holds (``X``, ``X | None``), or None."""
+    if dataclasses.is_dataclass(tp):
+        return tp
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return next((arg for arg in typing.get_args(tp) if dataclasses.is_dataclass(arg)), None)
+    return None
+
+
+def _known_key(schema: type, parts: list[str]) -> str | None:
+    """None if ``parts`` is a key of ``schema``, else the nearest valid key at the level that failed ("": none)."""
+    hints = typing.get_type_hints(schema)
+    head, rest = parts[0], parts[1:]
+    if head not in hints:
+        near = difflib.get_close_matches(head, sorted(hints), n=1)
+        return near[0] if near else ""
+    if not rest:
+        return None
+    tp = hints[head]
+    inner = _dataclass_of(tp)
+    if inner is not None:
+        return _known_key(inner, rest)
+    value = _dataclass_of(typing.get_args(tp)[1]) if typing.get_origin(tp) is dict else None
+    if value is not None and len(rest) > 1:  # any key of the dict (profiles.tiny), then the value's own fields
+        return _known_key(value, rest[1:])
+    return None  # a key of a free-form dict, or an element: left to OmegaConf
+
+
+def _check_override_keys(overrides: list[str]) -> None:
+    """An override of a key the schema does not have is refused, with the nearest valid key."""
+    for item in overrides:
+        if "=" not in item and not item.startswith("~"):
+            raise ValueError(f"override {item!r} is not key=value")
+        key = item.split("=", 1)[0].lstrip("+~")
+        near = _known_key(ExperimentConfig, key.split("."))
+        if near is not None:
+            hint = f"; did you mean {near!r}?" if near else ""
+            raise ValueError(f"unknown experiment key {key!r}{hint} (docs/experiments.md lists every key)")
+
+
+# ----------------------------------------------------------------------------------------- compose
+def compose_experiment(name: str, overrides: list[str] = ()) -> DictConfig:
+    """Experiment ``name``'s config with command-line style ``overrides``, unresolved (``for_scenario``
+    resolves it per scenario); an unknown experiment, key or choice, or a wrong type, is one ``ValueError`` line."""
+    overrides = list(overrides)
+    if name not in experiment_names():
+        raise ValueError(f"unknown experiment {name!r}; valid: {', '.join(experiment_names())}")
+    _check_override_keys(overrides)
+    register_configs()
+    try:
+        with initialize_config_dir(config_dir=str(EXPERIMENT_DIR), version_base="1.3"):
+            cfg = compose(config_name=name, overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as error:
+        raise ValueError(_one_line(error)) from None
+    missing = sorted(OmegaConf.missing_keys(cfg))
+    if missing:
+        raise ValueError(f"experiment {name}: key(s) {missing} have no value")
+    return cfg
+
+
+def _one_line(error: BaseException) -> str:
+    """Hydra's or OmegaConf's message, and its cause's, on one line."""
+    parts = []
+    while error is not None and len(parts) < 2:
+        lines = [x.strip() for x in str(error).strip().splitlines() if x.strip()]
+        lines = [x for x in lines if not x.startswith(("full_key", "object_type", "reference_type", "To append"))]
+        parts += [x.rstrip(".") for x in lines[: 2 - len(parts)] if x.rstrip(".") not in parts]
+        error = error.__cause__
+    return ": ".join(parts) or "invalid experiment config"
+
+
+def for_scenario(cfg: DictConfig, scenario: str) -> ExperimentConfig:
+    """``cfg`` with ``scenario`` set and every path resolved for it, as the typed ``ExperimentConfig``."""
+    out = cfg.copy()
+    out.scenario = scenario
+    try:
+        OmegaConf.resolve(out)
+        return OmegaConf.to_object(out)
+    except OmegaConfBaseException as error:
+        raise ValueError(_one_line(error)) from None
+
+
+# ----------------------------------------------------------------------------------------- checks
+def _at_least(value, low, what: str) -> None:
+    if value is None or value < low:
+        raise ValueError(f"{what} must be >= {low}, got {value}")
+
+
+def _subset(keys, valid, what: str, of: str) -> None:
+    unknown = [k for k in keys if k not in valid]
+    if unknown:
+        raise ValueError(f"{what} {unknown} {'is' if len(unknown) == 1 else 'are'} not {of}; valid: {list(valid)}")
+
+
+def check_experiment(cfg: ExperimentConfig) -> Profile:
+    """Refuse an impossible experiment before any work, in one line naming the key; returns its profile."""
+    from daof.envs import make_system
+    from daof.evaluate.dropout import dropout_mask
+
+    if cfg.profile not in cfg.profiles:
+        raise ValueError(f"unknown profile {cfg.profile!r}; valid: {list(cfg.profiles)}")
+    p = cfg.profiles[cfg.profile]
+    where = f"profiles.{cfg.profile}"
+    for key in ("runs", "steps"):
+        _at_least(getattr(p, key), 1, f"{where}.{key}")
+    for key in ("window", "parallel_jobs", "timing_threads"):
+        _at_least(getattr(cfg, key), 1, key)
+
+    scenarios = cfg.scenarios
+    if not scenarios:
+        raise ValueError(f"scenarios must be one or more scenario names of {cfg.system}, got []")
+    if len(set(scenarios)) != len(scenarios):
+        raise ValueError(f"scenarios {list(scenarios)} name a scenario more than once")
+    try:
+        systems = {s: make_system(cfg.system, s, **p.system) for s in scenarios}
+    except (TypeError, ValueError) as error:
+        raise ValueError(str(error).splitlines()[0]) from None
+    system = systems[scenarios[0]]
+    valid_scenarios = list(system.scenarios)
+    _subset(cfg.scenario_notes, valid_scenarios, "scenario_notes", f"scenarios of {cfg.system}")
+
+    learned = cfg.learned
+    groups = sorted(p.stem for p in (TRAIN_CONF_DIR / "filter").glob("*.yaml"))
+    for name, row in learned.items():
+        if row.filter not in groups:
+            raise ValueError(f"learned.{name}.filter={row.filter!r} is not valid; valid: {groups}")
+        if name not in p.frames:
+            raise ValueError(f"{where}.frames has no budget for the learned row {name!r}")
+        _at_least(p.frames[name], 1, f"{where}.frames.{name}")
+    _subset(p.frames, learned, f"{where}.frames", "learned rows")
+    _subset(p.overrides, learned, f"{where}.overrides", "learned rows")
+    if cfg.window_study is not None:
+        _subset([cfg.window_study], learned, "window_study", "a learned row")
+        if not p.windows:
+            raise ValueError(f"{where}.windows is empty: the window study ({cfg.window_study}) needs at least one N")
+        for n in p.windows:
+            _at_least(n, 1, f"{where}.windows")
+        if len(set(p.windows)) != len(p.windows):
+            raise ValueError(f"{where}.windows {list(p.windows)} names a window more than once")
+    elif p.windows:
+        raise ValueError(f"{where}.windows is set but window_study names no learned row")
+
+    classical = cfg.classical
+    clash = sorted(set(classical) & set(learned))
+    if clash:
+        raise ValueError(f"{clash} are both classical filters and learned rows")
+    if classical and not system.has_model:
+        raise ValueError(f"{cfg.system} has no model for filters: the classical filters {list(classical)} cannot run")
+    particle = [n for n, c in classical.items() if c.filter in PARTICLE_FILTERS]
+    for name, spec in classical.items():
+        if spec.filter not in CLASSICAL_FILTERS:
+            raise ValueError(f"classical.{name}.filter={spec.filter!r} is not valid; valid: {list(CLASSICAL_FILTERS)}")
+        _subset(spec.scenarios or [], valid_scenarios, f"classical.{name}.scenarios", f"scenarios of {cfg.system}")
+        if name in particle:
+            if name not in p.particles:
+                raise ValueError(f"{where}.particles has no particle count for {name!r}")
+            _at_least(p.particles[name], 1, f"{where}.particles.{name}")
+    _subset(p.particles, particle, f"{where}.particles", "particle filters of classical")
+    if not classical and not learned:
+        raise ValueError("the experiment has no filters: set learned and/or classical")
+
+    rows = [*classical, *learned]
+    _subset(cfg.reference, rows, "reference", "filters of the study")
+    check = cfg.convergence_check
+    if check is not None:
+        _subset([check.filter], particle, "convergence_check.filter", "a particle filter of classical")
+        _subset(check.scenarios or [], valid_scenarios, "convergence_check.scenarios", f"scenarios of {cfg.system}")
+    for name, req in cfg.requirements.items():
+        _subset([name], rows, "requirements", "filters of the study")
+        if not req.tolerance > 0:
+            raise ValueError(f"requirements.{name}.tolerance must be > 0, got {req.tolerance}")
+        if req.settled_step is not None:
+            _at_least(req.settled_step, 0, f"requirements.{name}.settled_step")
+        if not cfg.reference:
+            raise ValueError(f"requirements.{name} is relative to the study's reference, but reference is empty")
+    if cfg.report.paired_with is not None:
+        _subset([cfg.report.paired_with], rows, "report.paired_with", "a filter of the study")
+    if cfg.report.paper_table is not None:
+        _subset([cfg.report.paper_table], PAPER_TABLES, "report.paper_table", "a paper table")
+
+    d = cfg.dropout
+    if not 0.0 <= d.p <= 1.0:
+        raise ValueError(f"dropout.p must be in [0, 1], got {d.p}")
+    if d.blackout is not None and len(d.blackout) != 3:
+        raise ValueError(f"dropout.blackout must be [channel, start_s, duration_s] or null, got {list(d.blackout)}")
+    if d.enabled:
+        try:
+            blackout = tuple(d.blackout) if d.blackout is not None else None
+            shape = (1, p.steps, system.measurement_dim)
+            dropout_mask(shape, d.p, blackout, d.seed, dt=system.dt, channel_names=system.measurement_names)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"dropout: {error}") from None
+
+    for note in [*cfg.notes, *cfg.combined_notes, *(n for notes in cfg.scenario_notes.values() for n in notes)]:
+        unknown = sorted(note_fields(note) - set(NOTE_FIELDS))
+        if unknown:
+            raise ValueError(f"note {note[:40]!r}... uses unknown field(s) {unknown}; valid: {sorted(NOTE_FIELDS)}")
+    return p

@@ -1,0 +1,180 @@
+"""Training jobs as parallel subprocesses of ``python -m daof.train``, reusing finished runs and resuming broken ones.
+
+A job is one training with its overrides and its own output directory. A job whose
+``summary.json`` records at least the requested number of frames is finished and reused; one
+with a ``checkpoint.pt`` is resumed from it; anything else starts fresh. Either only if the
+directory's ``run_config.json`` (the resolved config its trainer ran with) equals the config the
+job asks for now, apart from what a continuation may change (the budget, the output directory,
+threads and logger: ``daof.train.base.RESUMABLE_CHANGES``), so a results root can be moved or
+copied and is still reused. A directory from another config is moved aside to
+``<dir>.stale-<n>`` and the job starts fresh. A trainer holds a lock on its directory
+(``daof.train.lock``), so a second trainer never runs in it; stopping ``run_jobs`` (an exception,
+Ctrl-C or SIGTERM) stops the trainings it started.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from daof.train.base import RUN_CONFIG, comparable_config
+from daof.train.config import compose_config
+
+__all__ = ["TrainingJob", "run_jobs"]
+
+
+@dataclass
+class TrainingJob:
+    """One training run: ``python -m daof.train overrides... output_dir=out``."""
+
+    name: str
+    output_dir: Path
+    total_frames: int
+    overrides: list[str] = field(default_factory=list)
+    #: the command that trains, before the overrides (another interpreter, or a stand-in in tests)
+    launcher: list[str] = field(default_factory=lambda: [sys.executable, "-m", "daof.train"])
+
+    @property
+    def summary_path(self) -> Path:
+        return self.output_dir / "summary.json"
+
+    def finished(self) -> bool:
+        if not self.summary_path.is_file() or not (self.output_dir / "best.pt").is_file():
+            return False
+        try:
+            done = json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
+        except (OSError, ValueError):  # a summary cut short is no finished run
+            return False
+        return done and self.config_matches()
+
+    @property
+    def arguments(self) -> list[str]:
+        """The overrides of ``python -m daof.train`` for this job (without ``resume``)."""
+        return [*self.overrides, f"collector.total_frames={self.total_frames}", f"output_dir={self.output_dir}"]
+
+    @functools.cached_property
+    def requested_config(self) -> dict:
+        """The resolved config this job trains with (composed once, in-process)."""
+        try:
+            return OmegaConf.to_container(compose_config(self.arguments))
+        except ValueError as error:
+            raise RuntimeError(f"{self.name}: {error}") from None
+
+    def config_matches(self) -> bool:
+        """Whether the run in ``output_dir`` was started with the config this job asks for."""
+        path = self.output_dir / RUN_CONFIG
+        if not path.is_file():
+            return False
+        try:
+            saved = json.loads(path.read_text())
+        except ValueError:
+            return False
+        return comparable_config(saved) == comparable_config(self.requested_config)
+
+    def set_aside_if_stale(self) -> Path | None:
+        """Move a run of another config out of the way (nothing is deleted); returns where it went."""
+        if not self.output_dir.is_dir() or not any(self.output_dir.iterdir()) or self.config_matches():
+            return None
+        k = 1
+        while (target := self.output_dir.with_name(f"{self.output_dir.name}.stale-{k}")).exists():
+            k += 1
+        shutil.move(str(self.output_dir), str(target))
+        return target
+
+    def command(self, with_resume: bool = True) -> list[str]:
+        cmd = [*self.launcher, *self.arguments]
+        checkpoint = self.output_dir / "checkpoint.pt"
+        if with_resume and checkpoint.is_file():
+            cmd.append(f"resume={checkpoint}")
+        return cmd
+
+    def summary(self) -> dict:
+        return json.loads(self.summary_path.read_text())
+
+
+def _last_progress(log: Path) -> str:
+    try:
+        tail = log.read_bytes()[-4000:].decode(errors="replace")
+    except OSError:
+        return ""
+    pieces = [p.strip() for p in tail.replace("\r", "\n").split("\n") if p.strip()]
+    bars = [p for p in pieces if "fr/s" in p or "fr]" in p or "%|" in p]
+    return (bars or pieces or ["starting"])[-1][:160]
+
+
+def _stop(running) -> None:
+    """Terminate the trainings still running (each saves nothing more; its last checkpoint stays)."""
+    for _, proc, _, _ in running:
+        if proc.poll() is None:
+            proc.terminate()
+    for _, proc, _, fh in running:
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        fh.close()
+
+
+def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every: float = 60.0) -> None:
+    """Run the unfinished jobs, ``parallel`` at a time; raise if any of them fails.
+
+    Whatever ends this function early (an error, Ctrl-C, SIGTERM) stops the trainings it started.
+    """
+    pending = []
+    for job in jobs:
+        if job.finished():
+            log(f"  {job.name}: finished earlier, reusing {job.output_dir}")
+            continue
+        stale = job.set_aside_if_stale()
+        if stale is not None:
+            log(f"  {job.name}: {job.output_dir} was trained with another config; moved to {stale}")
+        _ = job.requested_config  # pinned now: a config edited while the job runs does not fail it
+        pending.append(job)
+    running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
+    failed = []
+    last_status = time.monotonic()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM"))
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                job = pending.pop(0)
+                job.output_dir.mkdir(parents=True, exist_ok=True)
+                log_path = job.output_dir / "train.log"
+                fh = log_path.open("ab")
+                resumed = " (resuming)" if any("resume=" in c for c in job.command()) else ""
+                log(f"  {job.name}: training{resumed}, log {log_path}")
+                proc = subprocess.Popen(job.command(), stdout=fh, stderr=subprocess.STDOUT, env=env)
+                running.append((job, proc, log_path, fh))
+            time.sleep(2.0)
+            for entry in list(running):
+                job, proc, log_path, fh = entry
+                if proc.poll() is None:
+                    continue
+                fh.close()
+                running.remove(entry)
+                if proc.returncode == 0 and job.finished():
+                    log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
+                else:
+                    failed.append(job.name)
+                    why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but no summary or best.pt"
+                    log(f"  {job.name}: FAILED ({why}); see {log_path}")
+            if running and time.monotonic() - last_status > status_every:
+                last_status = time.monotonic()
+                for job, _, log_path, _ in running:
+                    log(f"  {job.name}: {_last_progress(log_path)}")
+    finally:
+        _stop(running)
+        signal.signal(signal.SIGTERM, previous)
+    if failed:
+        raise RuntimeError(f"training failed for {failed}; rerun the same command to resume")

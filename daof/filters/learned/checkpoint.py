@@ -1,0 +1,107 @@
+"""``load_filter``: a learned filter from a saved file (``best.pt``, ``final.pt``) or a training ``checkpoint.pt``.
+
+Files are read with ``torch.load(weights_only=True)``: tensors and plain data only, never code.
+A training checkpoint also holds numpy's RNG state, so numpy arrays (the reconstruct function,
+``ndarray`` and ``dtype``) are allowed too; nothing else is.
+"""
+
+from __future__ import annotations
+
+import pickle
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from daof.envs.registry import make_system
+from daof.envs.system import StochasticSystem
+from daof.filters.learned.base import LearnedFilter
+from daof.filters.learned.config import FilterConfig
+
+__all__ = ["load_filter", "read_checkpoint"]
+
+_NUMPY_ARRAYS = [
+    np._core.multiarray._reconstruct if hasattr(np, "_core") else np.core.multiarray._reconstruct,
+    np.ndarray,
+    np.dtype,
+    type(np.dtype(np.uint32)),
+]
+
+
+def read_checkpoint(path: str | Path):
+    """The contents of a torch file as tensors and plain data; one-line ``ValueError`` naming the file otherwise.
+
+    A file that would need any other object (code, a class to rebuild) is refused unread: its
+    pickle never runs. An empty, truncated or foreign file is refused as unreadable.
+    """
+    try:
+        with torch.serialization.safe_globals(_NUMPY_ARRAYS), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Detected pickle protocol")  # a foreign pickle: refused below
+            return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        found = re.search(r"GLOBAL (\S+)", str(error))
+        if found is None:
+            raise ValueError(f"{path} is not a readable checkpoint (empty, truncated or not a torch file)") from None
+        raise ValueError(
+            f"{path} holds objects other than tensors and plain data ({found.group(1)}); refusing to load it"
+        ) from None
+    except Exception as error:  # noqa: BLE001  (EOFError, zip errors, ...: all mean the same here)
+        what = f"empty, truncated or not a torch file: {type(error).__name__}"
+        raise ValueError(f"{path} is not a readable checkpoint ({what})") from None
+
+
+def _filter_config(fields: dict, path: Path) -> FilterConfig:
+    try:
+        return FilterConfig(**fields)
+    except TypeError as error:  # a field this version does not know
+        raise ValueError(f"checkpoint {path} has a filter config this version cannot read ({error})") from None
+
+
+def _contents(blob, path: Path) -> tuple[FilterConfig, dict, dict, dict]:
+    """(config, state dict, extra, system overrides) of a filter file or a training checkpoint."""
+    if isinstance(blob, dict) and {"config", "state_dict"} <= blob.keys():  # LearnedFilter.save
+        config = _filter_config({"gelu_approximate": "none", **blob["config"]}, path)  # older ones: exact GELU
+        return config, blob["state_dict"], blob.get("extra", {}), {}
+    if isinstance(blob, dict) and {"config", "filter", "training"} <= blob.keys():  # FilterTrainer.save_checkpoint
+        training, run = blob["training"], blob["config"]
+        extra = {"frames": training.get("frames"), "updates": training.get("updates")}
+        extra |= {"wall_s": training.get("wall"), "history": training.get("history", [])}
+        # the model's parameters; a replayed episode bank does not change the model
+        overrides = {k: v for k, v in (run.get("overrides") or {}).items() if k != "replay"}
+        if blob.get("filter_config"):  # the filter's own config, as the trainer built it
+            config = _filter_config(blob["filter_config"], path)
+        else:  # older checkpoints: from the training config
+            config = FilterConfig.from_training(run, blob["filter"])
+        return config, blob["filter"], extra, overrides
+    raise ValueError(f"{path} is not a learned-filter checkpoint")
+
+
+def load_filter(path: str | Path, system: StochasticSystem | None = None, expect: dict | None = None):
+    """The learned filter saved at ``path``: by ``LearnedFilter.save`` or a training ``checkpoint.pt``.
+
+    ``expect`` checks config fields (system, window, …); ``system`` is the system to filter (by
+    default the checkpoint's: its name, scenario and, for a training checkpoint, parameter overrides).
+    Every refusal is one line naming the file: ``FileNotFoundError`` if there is none, else ``ValueError``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no filter checkpoint at {path}")
+    config, state, extra, overrides = _contents(read_checkpoint(path), path)
+    for key, value in (expect or {}).items():
+        if getattr(config, key) != value:
+            raise ValueError(f"checkpoint {path} has {key}={getattr(config, key)!r}, expected {value!r}")
+    if system is not None and system.name != config.system:
+        raise ValueError(f"checkpoint {path} is a filter for {config.system!r}, not for {system.name!r}")
+    if system is None and overrides:
+        system = make_system(config.system, config.scenario, **overrides)
+    module = LearnedFilter(config, system)
+    try:
+        module.load_state_dict(state)
+    except RuntimeError as error:  # saved by another version of the filter (other inputs or sizes)
+        first = str(error).strip().splitlines()[-1].strip()
+        raise ValueError(f"checkpoint {path} does not fit this filter's layout ({first})") from None
+    module.extra = extra
+    module.path = path
+    return module.eval()

@@ -1,0 +1,131 @@
+"""DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N), a model predictor plus a learned, bounded update.
+
+π ∈ [−1, 1]ⁿ; the bound b_t is sized from the noise (``FilterConfig.correction_bound``) per
+start-up step. With ``reference_gain`` the update is K̄_t ν_t + b_t ⊙ π(h_t^N), a learned residual
+on the update of a UKF's mean gain at step t. With ``innovation_input`` the network also reads
+ν_t / √diag S_t. A missing measurement reads as its prediction (``missing_fill``).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from daof.filters.learned.base import UpdateFilter, register
+from daof.filters.learned.config import FilterConfig
+from daof.filters.learned.network import SCHEDULE_STEPS, schedule_row
+
+__all__ = ["DAOFv1"]
+
+
+@register
+class DAOFv1(UpdateFilter):
+    """DAOF-v1 (module docstring): needs a system with a model (``has_model``)."""
+
+    kind = "DAOF-v1"
+    accepts_reference_gain = True
+    # reading the prediction beats holding the last value on every gap pattern measured
+    # (benchmarks/missing_data.py, docs/missing_data.md); the others have no model to predict with
+    missing_fills = ("prediction", "hold")
+
+    @classmethod
+    def check_config(cls, config: FilterConfig) -> None:
+        super().check_config(config)
+        if config.missing_mask:
+            raise ValueError("missing_mask is for the model-free filters: DAOF-v1 reads a gap as its prediction")
+
+    def _check_system(self) -> None:
+        if not self.system.has_model:
+            raise ValueError(f"DAOF-v1 needs a model predictor; {self.config.system} offers none (use DAOF-v2)")
+
+    @property
+    def innovation_input(self) -> bool:
+        """Whether the network reads ν_t: it needs u_t and u_{t−1} in the frame when the system has controls."""
+        return self.config.innovation_input and (self.uses_controls or self.system.control_dim == 0)
+
+    def _innovation_feature(self):
+        return self.innovation if self.innovation_input else None
+
+    def _initial_bound(self) -> torch.Tensor:
+        # the process-noise bound; ``set_schedules`` widens it for "kalman"
+        return self.config.correction_sigmas * self.system.process_noise.covariance.diagonal().sqrt()
+
+    def _register_action_buffers(self) -> None:
+        super()._register_action_buffers()
+        if self.config.reference_gain:  # only then: checkpoints saved before the option existed load as they are
+            s = self.system
+            self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, s.state_dim, s.measurement_dim))
+
+    # ----------------------------------------------------------------- model
+    def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
+        """The model predictor f(x̂_{t−1}, u_{t−1})."""
+        return self.system.f(prev_estimate, prev_control)
+
+    def innovation(self, window: torch.Tensor, prediction: torch.Tensor | None = None) -> torch.Tensor:
+        """ν_t = y_t − g(x̂⁻_t, u_t), x̂⁻_t = f(x̂_{t−1}, u_{t−1}), from the newest frame of h_t^N.
+
+        ``prediction`` is x̂⁻_t where the caller has it already.
+        """
+        s, at = self.system, self.layout.offset
+        frame = self.layout.newest(window)
+        if self.uses_controls:
+            u, u_prev = frame[..., at("control")], frame[..., at("prev_control")]
+        else:  # a system without controls: f and g take empty ones
+            u = u_prev = frame[..., :0]
+        if prediction is None:
+            prediction = s.f(frame[..., at("prev_estimate")], u_prev)
+        return frame[..., at("measurement")] - s.g(prediction, u)
+
+    def _innovation_for(self, window: torch.Tensor, prediction: torch.Tensor) -> torch.Tensor | None:
+        return self.innovation(window, prediction) if self.innovation_input or self.config.reference_gain else None
+
+    def reference_update(self, window: torch.Tensor, prediction: torch.Tensor, step, nu=None) -> torch.Tensor | None:
+        """K̄_t ν_t, the update of the reference gain (``reference_gain``), or None without it."""
+        if not self.config.reference_gain:
+            return None
+        if nu is None:
+            nu = self.innovation(window, prediction)
+        return (schedule_row(self.reference_gain, step) @ nu.unsqueeze(-1)).squeeze(-1)
+
+    # ----------------------------------------------------------------- schedules
+    @torch.no_grad()
+    def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
+        """The per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
+
+        The update bound b_t = correction_sigmas · max(sqrt(diag Q), schedule["update"]_t) (for
+        the "kalman" bound; schedule["estimate"]_t for "posterior"), the innovation scale √diag S_t
+        = schedule["innovation"]_t (with the innovation input) and, with ``reference_gain``, the gain
+        K̄_t = schedule["gain"]_t. A shorter schedule is held at its last row. Stored in the checkpoint.
+        """
+
+        def rows(values: torch.Tensor) -> torch.Tensor:
+            values = values.to(self.correction_scale)[:SCHEDULE_STEPS]
+            return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
+
+        sigmas = self.config.correction_sigmas
+        if self.config.correction_bound == "kalman":
+            floor = self.system.process_noise.covariance.diagonal().sqrt().to(self.correction_scale)
+            self.correction_scale.copy_(sigmas * torch.maximum(rows(schedule["update"]), floor))
+        elif self.config.correction_bound == "posterior":
+            self.correction_scale.copy_(sigmas * rows(schedule["estimate"]).clamp_min(1e-12))
+        if self.config.reference_gain:
+            self.reference_gain.copy_(rows(schedule["gain"]))
+        if self.innovation_input:
+            self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
+
+    # ----------------------------------------------------------------- missing measurements
+    def _gap_fill(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        """With ``missing_fill="prediction"``: a missing channel reads as its predicted measurement (ν_t = 0 there)."""
+        if self.missing_fill != "prediction":
+            return None
+        gaps = torch.isnan(y)
+        gappy = gaps.any(-1).any(0).tolist()
+        y_part = self.layout.without("prev_estimate").offset("measurement")  # y_t leads the frame's measured part
+        m = y_part.stop
+
+        def fill(t: int, prev: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+            if not gappy[t]:
+                return present
+            predicted = self.system.g(self.predict(prev, u_prev[:, t]), u[:, t])
+            return torch.cat([torch.where(gaps[:, t], predicted, present[:, :m]), present[:, m:]], -1)
+
+        return fill
