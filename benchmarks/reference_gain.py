@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/reference_gain.py --system veh2dof
 
-With ``network.reference_gain`` DAOF-v1 estimates x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t),
+DAOF-v1 estimates x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t),
 K̄_t a UKF's mean Kalman gain at step t over 16 simulated runs (the schedule a training run builds).
 With π = 0, where a residual run starts, that is a gain-scheduled Kalman filter on the model's own
 prediction. This prints its RMSE beside the UKF's (and the KF's on ``linear``) over all steps, the
@@ -34,7 +34,7 @@ def main() -> None:
     parser.add_argument("--schedule-seed", type=int, default=7_000_002, help="seeds.normalizer + 1, as trainings use")
     args = parser.parse_args()
     system = make_system(args.system)
-    config = FilterConfig(kind="DAOF-v1", system=args.system, reference_gain=True, correction_bound="posterior")
+    config = FilterConfig(kind="DAOF-v1", system=args.system)
     reference = LearnedFilter(config, system)
     reference.set_schedules(ukf_schedule(system, seed=args.schedule_seed))
     last = [m for m in reference.policy.mlp if isinstance(m, torch.nn.Linear)][-1]

@@ -202,15 +202,14 @@ def make_env(
     max_steps: int = 500,
     include_controls: bool = True,
     reward_weights=None,
-    padding: str = "same",
     layout=None,
     **overrides,
 ):
     """The filtering env of system ``name`` with its history window (a ``TransformedEnv``).
 
-    ``padding`` fills the window in front of the first frame (``daof.envs.history``); ``overrides`` go
+    The window is padded with copies of the first frame (``daof.envs.history``); ``overrides`` go
     to ``make_system`` (system parameters). ``layout`` (a ``FrameLayout``, e.g. a learned filter's
-    ``filter.layout``) gives the window instead of ``window``, ``include_controls`` and ``padding``.
+    ``filter.layout``) gives the window instead of ``window`` and ``include_controls``.
     """
     from daof.envs.history import FrameLayout, with_window
     from daof.envs.registry import make_system
@@ -218,5 +217,5 @@ def make_env(
     system = make_system(name, scenario, **overrides)
     env = FilteringEnv(system, batch_size, max_steps, reward_weights, seed, device)
     if layout is None:
-        layout = FrameLayout.for_system(system, window, include_controls=include_controls, padding=padding)
+        layout = FrameLayout.for_system(system, window, include_controls=include_controls)
     return with_window(env, layout)

@@ -1,5 +1,9 @@
 """The filtering MDP as a single-episode gymnasium env, registered as ``daof/Veh2DOF-v0``.
 
+Importing ``daof.envs`` registers the id. gymnasium (1.x) loads no plugins by itself, so a fresh
+interpreter names the module in the id: ``gymnasium.make("daof.envs:daof/Veh2DOF-v0")``; TorchRL's
+``GymEnv("daof/Veh2DOF-v0")`` works once ``daof.envs`` is imported.
+
 Same MDP as ``daof.envs.filtering_env.FilteringEnv`` with batch 1 and its history window: the
 observation is h_t^N (the last N frames [x̂_{t−1}, y_t, u_t, u_{t−1}], oldest first, padded with
 the first frame after a reset), the action is the estimate x̂_t, the reward −‖x_t − x̂_t‖²_W.
@@ -9,6 +13,8 @@ For users of gymnasium-based tooling; training in this project uses the batched 
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import gymnasium
 import numpy as np
@@ -117,6 +123,12 @@ class Veh2DOFGymEnv(FilteringGymEnv):
         reward_weights=None,
         **overrides,
     ):
+        from daof.envs.registry import SYSTEMS
+
+        known = {f.name for f in dataclasses.fields(SYSTEMS["veh2dof"][1])}
+        for name in overrides:  # a TypeError, as for any callable: gymnasium and TorchRL's GymEnv rely on it
+            if name not in known:
+                raise TypeError(f"Veh2DOFGymEnv got an unexpected keyword argument {name!r}")
         super().__init__(make_system("veh2dof", scenario, **overrides), window, max_steps, reward_weights)
 
 

@@ -4,7 +4,7 @@ h_t^N = (x̂_{t−N}, y_{t−N+1}, …, x̂_{t−1}, y_t): the last N frames, ol
 estimate x̂_{t−1} (closed-loop filters only), the measurement y_t, optionally the controls
 (u_t, u_{t−1}) and, with missing flags, the 0/1 ``missing`` flags of a system with sensor gaps
 (``daof.envs.gaps``). A ``FrameLayout`` says which keys form a frame, in what order and how wide,
-the window length N and the reset padding; everything that builds or reads a window uses it:
+the window length N; everything that builds or reads a window uses it:
 
 * the TorchRL env: ``layout.transform()`` is TorchRL's own ``CatTensors`` (one frame per step)
   followed by ``CatFrames`` (the last N frames along the last dim); ``with_window(env, layout)``;
@@ -13,9 +13,8 @@ the window length N and the reset padding; everything that builds or reads a win
 * the gymnasium env's window (``daof.envs.gym_env``).
 
 Reset padding: right after a reset the window holds the first frame (the prior mean and the
-first measurement) and N − 1 padding frames in front of it: copies of that frame (``"same"``,
-the default) or zeros (``"zeros"``; for zero-mean channels zeros are the training mean, i.e.
-frames that carry no measurement, while N copies look like N measurements that agree). Partial
+first measurement) and N − 1 copies of it in front (CatFrames' ``padding="same"``; zero padding
+was measured not to help and was retired, docs/log/2026-12-07-retired-options.md). Partial
 resets pad only the runs that were reset. The env stores the window once per step (``history`` and its ``next``
 twin, as every TorchRL observation), so a replay buffer needs no frame-stacking transform of its
 own and must not be given one.
@@ -34,7 +33,6 @@ __all__ = [
     "FIELD_ORDER",
     "FRAME_KEY",
     "HISTORY_KEY",
-    "PADDINGS",
     "FrameLayout",
     "sliding_windows",
     "with_window",
@@ -42,29 +40,22 @@ __all__ = [
 
 HISTORY_KEY = "history"
 FRAME_KEY = "frame"
-#: how the window is filled in front of the first frame after a reset
-PADDINGS = ("same", "zeros")
 #: every per-step key a frame may hold, in frame order (a layout holds a subset, in this order)
 FIELD_ORDER = ("prev_estimate", "measurement", "control", "prev_control", MISSING_KEY)
 
 
-def sliding_windows(frames: torch.Tensor, window: int, padding: str = "same") -> torch.Tensor:
-    """[..., steps, F] frames -> [..., steps, N·F] windows, oldest first, padded like CatFrames.
-
-    ``padding="same"``: the first frame repeated N−1 times in front; ``"zeros"``: N−1 zero frames.
-    """
+def sliding_windows(frames: torch.Tensor, window: int) -> torch.Tensor:
+    """[..., steps, F] frames -> [..., steps, N·F] windows, oldest first, padded like CatFrames:
+    the first frame repeated N−1 times in front."""
     lead, width = frames.shape[:-2], frames.shape[-1]
-    if padding == "same":
-        pad = frames[..., :1, :].expand(*lead, window - 1, width)
-    else:
-        pad = frames.new_zeros(*lead, window - 1, width)
+    pad = frames[..., :1, :].expand(*lead, window - 1, width)
     padded = torch.cat([pad, frames], -2)  # [..., steps + N − 1, F]
     return padded.unfold(-2, window, 1).transpose(-1, -2).flatten(-2)
 
 
 @dataclass(frozen=True)
 class FrameLayout:
-    """Which per-step keys form a frame (in order, with their widths), the window length N and the reset padding.
+    """Which per-step keys form a frame (in order, with their widths) and the window length N.
 
     Build one with ``for_system`` (from a system's dimensions) or read an env's with ``of_env``.
     The fed-back estimate, where there is one, is the first field of every frame.
@@ -74,14 +65,10 @@ class FrameLayout:
     fields: tuple[tuple[str, int], ...]
     #: N, the number of frames in a window
     window: int
-    #: what fills the window in front of the first frame after a reset (``PADDINGS``)
-    padding: str = "same"
 
     def __post_init__(self):
         if not isinstance(self.window, int) or isinstance(self.window, bool) or self.window < 1:
             raise ValueError(f"window must be an integer N >= 1, got {self.window!r}")
-        if self.padding not in PADDINGS:
-            raise ValueError(f"window padding must be one of {PADDINGS}, got {self.padding!r}")
         fields = tuple((str(key), int(width)) for key, width in self.fields)
         keys = [key for key, _ in fields]
         unknown = [key for key in keys if key not in FIELD_ORDER]
@@ -107,7 +94,6 @@ class FrameLayout:
         closed_loop: bool = True,
         include_controls: bool = True,
         missing_flags: bool = False,
-        padding: str = "same",
     ) -> FrameLayout:
         """The layout of ``system``'s frames: [x̂_{t−1} (closed loop), y_t, (u_t, u_{t−1}), (missing flags)].
 
@@ -120,7 +106,7 @@ class FrameLayout:
             fields += [("control", c), ("prev_control", c)]
         if missing_flags:
             fields.append((MISSING_KEY, m))
-        return cls(tuple(fields), window, padding)
+        return cls(tuple(fields), window)
 
     @classmethod
     def of_env(cls, env) -> FrameLayout:
@@ -135,19 +121,16 @@ class FrameLayout:
             raise ValueError(f"the env builds no {HISTORY_KEY!r} window (CatTensors + CatFrames; see with_window)")
         spec = env.observation_spec
         fields = tuple((key, spec[key].shape[-1]) for key in cat.in_keys)
-        if frames.padding == "same":
-            padding = "same"
-        elif frames.padding == "constant" and frames.padding_value == 0:
-            padding = "zeros"
-        else:
+        if frames.padding != "same":
             raise ValueError(
-                f"the env's window is padded with {frames.padding!r} ({frames.padding_value}), not {PADDINGS}"
+                f"the env's window is padded with {frames.padding!r} ({frames.padding_value}), not with copies "
+                "of the first frame ('same'; docs/log/2026-12-07-retired-options.md)"
             )
-        return cls(fields, int(frames.N), padding)
+        return cls(fields, int(frames.N))
 
     def without(self, *keys: str) -> FrameLayout:
         """The same layout with ``keys`` left out of every frame (e.g. the fed-back estimate)."""
-        return FrameLayout(tuple(f for f in self.fields if f[0] not in keys), self.window, self.padding)
+        return FrameLayout(tuple(f for f in self.fields if f[0] not in keys), self.window)
 
     # ----------------------------------------------------------------- sizes
     @property
@@ -185,9 +168,9 @@ class FrameLayout:
         return key in self._slices
 
     def describe(self) -> str:
-        """One line: N, the frame's fields with their widths, the padding."""
+        """One line: N and the frame's fields with their widths."""
         fields = ", ".join(f"{key}[{width}]" for key, width in self.fields)
-        return f"N={self.window} frames of ({fields}), padding {self.padding!r}"
+        return f"N={self.window} frames of ({fields})"
 
     # ----------------------------------------------------------------- reading
     def offset(self, key: str) -> slice:
@@ -222,9 +205,7 @@ class FrameLayout:
         return torch.cat([values[key] for key in self.keys], -1)
 
     def first_window(self, frame: torch.Tensor) -> torch.Tensor:
-        """h_1 [..., N·F]: the first frame [..., F] after a reset behind N − 1 padding frames, as CatFrames pads."""
-        if self.padding == "zeros":
-            return torch.cat([frame.new_zeros(*frame.shape[:-1], (self.window - 1) * frame.shape[-1]), frame], -1)
+        """h_1 [..., N·F]: the first frame [..., F] after a reset behind N − 1 copies of it, as CatFrames pads."""
         return frame.repeat(*([1] * (frame.ndim - 1)), self.window)
 
     def slide(self, window: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
@@ -233,15 +214,14 @@ class FrameLayout:
 
     def sliding_windows(self, frames: torch.Tensor) -> torch.Tensor:
         """Every window of offline frames at once: [..., steps, F] -> [..., steps, N·F], each episode
-        starting after a reset (``sliding_windows`` with this layout's N and padding)."""
-        return sliding_windows(frames, self.window, self.padding)
+        starting after a reset (``sliding_windows`` with this layout's N)."""
+        return sliding_windows(frames, self.window)
 
     def transform(self) -> Compose:
         """The TorchRL transforms that add ``frame`` and the N-step window ``history`` to an env's output."""
-        pad = {"padding": "same"} if self.padding == "same" else {"padding": "constant", "padding_value": 0.0}
         return Compose(
             CatTensors(list(self.keys), out_key=FRAME_KEY, del_keys=False, sort=False),
-            CatFrames(N=self.window, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], **pad),
+            CatFrames(N=self.window, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], padding="same"),
         )
 
 
@@ -260,18 +240,18 @@ def with_window(
     env,
     layout: FrameLayout | int,
     include_controls: bool = True,
-    padding: str = "same",
+    *,
     missing_flags: bool = False,
 ) -> TransformedEnv:
     """Wrap ``env`` (a ``FilteringEnv``) so that its observations carry the window of ``layout``.
 
-    The older form ``with_window(env, N, include_controls, padding, missing_flags)`` builds the
+    The older form ``with_window(env, N, include_controls, missing_flags=...)`` builds the
     closed-loop layout of ``env.system`` from those arguments. A layout whose fields the env does not
     produce at their widths is refused with one line.
     """
     if not isinstance(layout, FrameLayout):
         layout = FrameLayout.for_system(
-            env.system, layout, include_controls=include_controls, missing_flags=missing_flags, padding=padding
+            env.system, layout, include_controls=include_controls, missing_flags=missing_flags
         )
     spec = env.observation_spec
     for key, width in layout.fields:

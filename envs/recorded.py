@@ -42,7 +42,9 @@ FORMAT = 1
 
 
 def _params(system: StochasticSystem) -> dict:
-    """The system's parameter dataclass as plain data (``{}`` if it has none)."""
+    """The system's parameter dataclass as plain data (``{}`` if it has none), through any wrappers."""
+    while isinstance(getattr(system, "system", None), StochasticSystem):
+        system = system.system
     for value in vars(system).values():
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             return dataclasses.asdict(value)

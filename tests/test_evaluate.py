@@ -587,3 +587,20 @@ def test_a_reports_command_line_keeps_every_override_given():
         "python s.py profile=paper profiles.paper.frames.DAOF-v1=3200000 'scenarios=[a,b]' +x=1"
     )
     assert command_line("s.py", "profile=quick") == "python s.py profile=quick"
+
+
+def test_the_study_cache_is_keyed_on_the_systems_parameters(tmp_path):
+    """A study of μ = 0.5 never reuses the cached results of μ = 0.9 (same filter, runs, steps, seed)."""
+    from daof.envs import make_system
+
+    from daof.evaluate.study import run_study
+    from daof.filters import EKF
+
+    def study(mu):
+        system = make_system("veh2dof", mu=mu)
+        filters = {"EKF": EKF(system)}
+        return run_study(system, filters, 3, 40, 5, measure_cost=False, cache_dir=tmp_path, log=lambda _: None)
+
+    nominal, low = study(0.9), study(0.5)
+    assert nominal.results["EKF"].rmse != low.results["EKF"].rmse
+    assert study(0.5).results["EKF"].rmse == low.results["EKF"].rmse  # the same system is reused

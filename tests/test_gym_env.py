@@ -90,3 +90,25 @@ def test_invalid_input_raises():
         Veh2DOFGymEnv(window=0)
     with pytest.raises(ValueError, match="unknown scenario"):
         gymnasium.make(GYM_ID, scenario="icy")
+
+
+def test_a_fresh_interpreter_makes_the_env_by_gymnasiums_module_prefixed_id():
+    import subprocess
+    import sys
+
+    make = "gymnasium.make('daof.envs:daof/Veh2DOF-v0', window=3)"
+    code = f"import gymnasium; env = {make}; print(env.reset(seed=0)[0].shape)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "(18,)"
+
+
+def test_torchrl_gymenv_wraps_the_registered_id():
+    """TorchRL's GymEnv passes frameskip; an unknown keyword is a TypeError, so it drops it and wraps the env."""
+    from torchrl.envs import GymEnv
+
+    env = GymEnv(GYM_ID, window=3)
+    rollout = env.rollout(4)
+    assert rollout["observation"].shape == (4, 18)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
+        Veh2DOFGymEnv(frameskip=2)

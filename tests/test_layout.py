@@ -1,7 +1,7 @@
 """``FrameLayout`` (envs/history.py): the one description of the window, checked against env rollouts.
 
 Closed loop and open loop, with and without controls (a system that has none, and controls left
-out), with missing flags, both paddings: the env's ``history`` is exactly what the layout says (its
+out), with missing flags: the env's ``history`` is exactly what the layout says (its
 fields, its newest frame, its first window after a reset, its sliding windows over an episode),
 ``of_env`` reads the layout back from the env, and the gymnasium env builds its window with it.
 """
@@ -13,18 +13,18 @@ from daof.envs import make_env, make_system
 from daof.envs.filtering_env import FilteringEnv
 from daof.envs.gaps import MISSING_KEY, GappySystem
 from daof.envs.gym_env import FilteringGymEnv
-from daof.envs.history import HISTORY_KEY, FrameLayout, with_window
+from daof.envs.history import FRAME_KEY, HISTORY_KEY, FrameLayout, with_window
+from torchrl.envs import CatFrames, CatTensors, Compose, TransformedEnv
 
 B, T, N = 3, 9, 4
 
 CASES = {
     # name: (system, layout options, gaps in the episodes)
     "closed-loop": ("veh2dof", {}, False),
-    "closed-loop-zeros": ("veh2dof", {"padding": "zeros"}, False),
     "open-loop": ("veh2dof", {"closed_loop": False}, False),
     "controls-left-out": ("veh2dof", {"include_controls": False}, False),
     "system-without-controls": ("veh14dof", {}, False),
-    "open-loop-without-controls": ("veh14dof", {"closed_loop": False, "padding": "zeros"}, False),
+    "open-loop-without-controls": ("veh14dof", {"closed_loop": False}, False),
     "missing-flags": ("veh2dof", {"missing_flags": True}, True),
     "open-loop-missing-flags": ("veh2dof", {"closed_loop": False, "missing_flags": True}, True),
 }
@@ -84,8 +84,8 @@ def test_layout_describes_the_env_window(name):
         window = layout.slide(window, frames[:, t])
         torch.testing.assert_close(history[:, t], window, rtol=0, atol=0)
     assert torch.equal(layout.unstack(history)[:, :, -1], frames)
-    if options.get("padding") == "zeros":
-        assert (layout.unstack(history[:, T])[:, :-1] == 0).all()
+    # after the reset the window is padded with copies of the first frame
+    assert torch.equal(layout.unstack(history[:, T]), frames[:, T : T + 1].expand(-1, N, -1).contiguous())
 
 
 def test_the_layout_without_the_fed_back_estimate_is_the_open_loop_one():
@@ -99,13 +99,13 @@ def test_the_layout_without_the_fed_back_estimate_is_the_open_loop_one():
 
 def test_make_env_builds_the_window_of_a_layout():
     system = make_system("veh2dof")
-    layout = FrameLayout.for_system(system, 5, closed_loop=False, padding="zeros")
+    layout = FrameLayout.for_system(system, 5, closed_loop=False)
     env = make_env("veh2dof", batch_size=2, seed=0, layout=layout)
     assert FrameLayout.of_env(env) == layout
     assert FrameLayout.of_env(make_env("veh2dof", batch_size=2, window=3)) == FrameLayout.for_system(system, 3)
     # the older form of with_window still builds the closed-loop layout
-    old = with_window(FilteringEnv(system, 2, 10, seed=0), 3, True, "zeros")
-    assert FrameLayout.of_env(old) == FrameLayout.for_system(system, 3, padding="zeros")
+    old = with_window(FilteringEnv(system, 2, 10, seed=0), 3, True)
+    assert FrameLayout.of_env(old) == FrameLayout.for_system(system, 3)
 
 
 def test_bad_layouts_fail_with_one_line():
@@ -116,8 +116,13 @@ def test_bad_layouts_fail_with_one_line():
         FrameLayout((("state", 2),), 3)
     with pytest.raises(ValueError, match="window must be an integer"):
         FrameLayout.for_system(system, 0)
-    with pytest.raises(ValueError, match="padding"):
-        FrameLayout.for_system(system, 3, padding="reflect")
+    keys = list(FrameLayout.for_system(system, 3).keys)  # a window padded with zeros (retired) is not a filter's
+    zeros = Compose(
+        CatTensors(keys, out_key=FRAME_KEY, del_keys=False, sort=False),
+        CatFrames(N=3, dim=-1, in_keys=[FRAME_KEY], out_keys=[HISTORY_KEY], padding="constant"),
+    )
+    with pytest.raises(ValueError, match=r"^the env's window is padded with 'constant' \(0\), not with copies"):
+        FrameLayout.of_env(TransformedEnv(FilteringEnv(system, 2, 10, seed=0), zeros))
     flagged = FrameLayout.for_system(system, 3, missing_flags=True)  # a system without gaps has no flags
     with pytest.raises(ValueError, match="^the window's field 'missing' needs width 2; the env has no such key$"):
         with_window(FilteringEnv(system, 2, 10, seed=0), flagged)

@@ -53,26 +53,23 @@ def small_form(form, **config):
     return small(kind, **fields, **config)
 
 
-@pytest.mark.parametrize("padding", ["same", "zeros"])
 @pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "DAOF-v2-increment"])
-def test_offline_run_equals_env_rollout(kind, padding):
+def test_offline_run_equals_env_rollout(kind):
     """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed.
 
-    The rollout runs 2 episodes of 15 steps, so the window is padded after a reset too."""
+    The rollout runs 2 episodes of 15 steps, so the window is padded (with copies of the first
+    frame) after a reset too."""
     extra = {"v2_action": "increment"} if kind.endswith("increment") else {}
-    f = small(kind.removesuffix("-increment"), window_padding=padding, **extra)
-    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15, padding=padding)
+    f = small(kind.removesuffix("-increment"), **extra)
+    env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15)
     with torch.no_grad():
         rollout = env.rollout(30, f.filter_module(), break_when_any_done=False)
     first = rollout["history"][:, 0].reshape(3, 4, -1)
-    if padding == "zeros":
-        assert (first[:, :3] == 0).all() and (first[:, 3] != 0).any()
-    else:
-        assert (first == first[:, -1:]).all()
+    assert (first == first[:, -1:]).all()
     data = f.system.simulate(3, 15, seed=11)
     torch.testing.assert_close(f.run(data), rollout["action"][:, :15], rtol=0, atol=0)
     second = rollout["history"][:, 15].reshape(3, 4, -1)
-    assert (second[:, :3] == 0).all() if padding == "zeros" else (second == second[:, -1:]).all()
+    assert (second == second[:, -1:]).all()
 
 
 def test_exploration_policy_deterministic_mode_is_the_filter():
@@ -112,53 +109,34 @@ def test_mean_feedback_feeds_back_the_deterministic_estimate_while_the_action_ex
         exploration_policy(f, "noisy")
 
 
-def test_v1_update_is_the_unit_action_times_the_bound_of_its_step():
-    """DAOF-v1: x̂_t − f(x̂_{t−1}, u_{t−1}) = b_t ⊙ a_t with the actor's a_t ∈ [−1, 1]ⁿ."""
-    f = small("DAOF-v1")
-    f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
-    env = make_env("veh2dof", batch_size=4, window=4, seed=3, max_steps=60)
-    with torch.no_grad():
-        td = env.rollout(60, exploration_policy(f), break_when_any_done=False)
-    assert (td["correction"].abs() <= 1).all()
-    steps = torch.arange(1, 61)
-    assert (td["step"][..., 0] == steps).all()
-    bound = f.correction_scale[steps.clamp(max=SCHEDULE_STEPS) - 1]  # [steps, n]
-    pred = f.system.f(td["prev_estimate"], td["prev_control"])
-    torch.testing.assert_close(td["action"] - pred, bound * td["correction"], atol=1e-6, rtol=0)
-
-
 @pytest.mark.parametrize("system", ["linear", "veh2dof"])
-def test_v1_kalman_bound_follows_the_ukf_update_and_settles_above_the_process_floor(system):
-    """b_t = k · max(√Q, std of the UKF's update at t): wide at t = 1 (the prior's error), ≥ k√Q always."""
+def test_v1_schedules_set_the_posterior_bound_the_gain_and_the_innovation_scale(system):
+    """b_t = k · √diag P⁺_t of the UKF, K̄_t its mean gain, √diag S_t the innovation input's scale;
+    before the schedules are set b is k√Q (a placeholder); a shorter schedule is held at its last row."""
     f = small("DAOF-v1", system=system)
     k, floor = f.config.correction_sigmas, f.system.process_noise.covariance.diagonal().sqrt()
     torch.testing.assert_close(f.correction_scale, (k * floor).expand_as(f.correction_scale))  # before fitting
     schedule = ukf_schedule(f.system, seed=3, runs=4)
     f.set_schedules(schedule)
-    torch.testing.assert_close(f.correction_scale, k * torch.maximum(schedule["update"], floor))
+    torch.testing.assert_close(f.correction_scale, k * schedule["estimate"])
+    torch.testing.assert_close(f.reference_gain, schedule["gain"])
     torch.testing.assert_close(f.policy.innovation_scale, schedule["innovation"])
-    assert (f.correction_scale[0] > 2 * k * floor).any()  # the start-up needs more than k√Q
-    assert (f.correction_scale >= k * floor - 1e-7).all()
-    process = LearnedFilter(FilterConfig(kind="DAOF-v1", system=system, window=4, correction_bound="process"))
-    process.set_schedules(schedule)
-    torch.testing.assert_close(process.correction_scale, (k * floor).expand_as(f.correction_scale))
-    short = small("DAOF-v1", system=system)  # a shorter schedule is held at its last row
+    short = small("DAOF-v1", system=system)
     short.set_schedules({key: value[:10] for key, value in schedule.items()})
     torch.testing.assert_close(short.correction_scale[10:], f.correction_scale[9:10].expand(SCHEDULE_STEPS - 10, -1))
 
 
 @pytest.mark.parametrize("system", ["linear", "veh2dof"])
-def test_v1_reference_gain_update_is_the_mean_gain_update_plus_the_bounded_residual(system):
-    """reference_gain: x̂_t − f(x̂_{t−1}, u_{t−1}) = K̄_t ν_t + b_t ⊙ a_t with "posterior" b_t = k√P⁺_t;
+def test_v1_update_is_the_mean_gain_update_plus_the_bounded_residual(system):
+    """x̂_t − f(x̂_{t−1}, u_{t−1}) = K̄_t ν_t + b_t ⊙ a_t with the actor's a_t ∈ [−1, 1]ⁿ and b_t = k√P⁺_t of step t;
     the deterministic filter, the collector's policy in deterministic mode and ``run`` agree."""
-    f = small("DAOF-v1", system=system, reference_gain=True, correction_bound="posterior")
+    f = small("DAOF-v1", system=system)
     schedule = ukf_schedule(f.system, seed=3, runs=4)
     f.set_schedules(schedule)
-    torch.testing.assert_close(f.reference_gain, schedule["gain"])
-    torch.testing.assert_close(f.correction_scale, f.config.correction_sigmas * schedule["estimate"])
     env = make_env(system, batch_size=3, window=4, seed=4, max_steps=60)
     with torch.no_grad():
         td = env.rollout(60, exploration_policy(f), break_when_any_done=False)
+    assert (td["correction"].abs() <= 1).all() and (td["step"][..., 0] == torch.arange(1, 61)).all()
     s, rows = f.system, td["step"][..., 0].clamp(max=SCHEDULE_STEPS) - 1
     prediction = s.f(td["prev_estimate"], td["prev_control"])
     nu = td["measurement"] - s.g(prediction, td["control"])
@@ -179,16 +157,14 @@ def test_v1_reference_gain_update_is_the_mean_gain_update_plus_the_bounded_resid
     with torch.no_grad():
         rolled = env.rollout(20, f.filter_module(), break_when_any_done=False)["action"]
     torch.testing.assert_close(f.run(data), rolled, rtol=0, atol=0)
-    with pytest.raises(ValueError, match="reference_gain"):
-        FilterConfig(kind="DAOF-v2", system=system, reference_gain=True)
 
 
-def test_v1_reference_gain_with_a_zero_residual_is_the_kalman_filter_on_linear():
+def test_v1_with_a_zero_residual_is_the_kalman_filter_on_linear():
     """On a linear-Gaussian system the UKF's gains are the data-independent K_t of the Kalman filter:
     with its residual at zero (tanh(0) = 0) DAOF-v1 is that filter, start-up included."""
     from daof.filters import KalmanFilter
 
-    f = small("DAOF-v1", system="linear", reference_gain=True, correction_bound="posterior")
+    f = small("DAOF-v1", system="linear")
     f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
     last = [m for m in f.policy.mlp if isinstance(m, torch.nn.Linear)][-1]
     with torch.no_grad():
@@ -238,13 +214,11 @@ def test_v1_estimate_stays_in_the_plausible_state_range():
 
 
 def test_sliding_windows_pad_like_catframes():
-    """Open-loop windows: oldest first, the first frame repeated N−1 times in front (or zeros)."""
+    """Open-loop windows: oldest first, the first frame repeated N−1 times in front."""
     frames = torch.arange(1.0, 5.0).reshape(1, 4, 1)
     same = FrameLayout((("measurement", 1),), 3)
     assert same.sliding_windows(frames)[0].tolist() == [[1, 1, 1], [1, 1, 2], [1, 2, 3], [2, 3, 4]]
     assert torch.equal(sliding_windows(frames, 3), same.sliding_windows(frames))  # the name before FrameLayout
-    zeros = FrameLayout((("measurement", 1),), 3, "zeros")
-    assert zeros.sliding_windows(frames)[0].tolist() == [[0, 0, 1], [0, 1, 2], [1, 2, 3], [2, 3, 4]]
 
 
 def test_slf_is_open_loop_and_vectorised():
@@ -422,12 +396,11 @@ def test_each_kind_is_its_own_class_on_a_shared_base():
         make_filter("DAOF-v1", system="veh14dof")
 
 
-@pytest.mark.parametrize("form", [*FORMS, "DAOF-v1-reference"])
+@pytest.mark.parametrize("form", list(FORMS))
 def test_fast_path_is_the_policy_network_and_its_squash(form):
     """The hand-folded inference path (``estimate``) is ``PolicyNet.forward`` + the squash (+ the
     prediction for an update filter), in an env rollout (step as a tensor) and streamed (step as an int)."""
-    extra = {"reference_gain": True, "correction_bound": "posterior"} if form == "DAOF-v1-reference" else {}
-    f = small_form(form.removesuffix("-reference"), **extra)
+    f = small_form(form)
     f.set_schedules(ukf_schedule(f.system, seed=3, runs=4))
 
     def generic(window, prev, u_prev, step):
@@ -504,8 +477,6 @@ def test_a_filter_refuses_an_env_with_another_window_in_one_line():
     slf = small("SLF", window=5)  # open loop: a closed-loop env of the same N is another window
     with pytest.raises(ValueError, match=r"^SLF reads windows of N=5 frames of \(measurement\[2\]"):
         slf.check_env(make_env("veh2dof", batch_size=2, window=5, seed=0))
-    with pytest.raises(ValueError, match="padding 'zeros'"):
-        small("DAOF-v2", window=5).check_env(make_env("veh2dof", batch_size=2, window=5, seed=0, padding="zeros"))
 
 
 # ----------------------------------------------------------------------------- checkpoints
@@ -515,32 +486,70 @@ def test_load_filter_reads_a_training_checkpoint(tmp_path, run):
     RNG states (numpy arrays among them), optimiser state. The filter is rebuilt from the filter config
     the checkpoint holds, or in older ones from the training config (a recipe's ``version`` config,
     the SLF's, a typed ``kind`` config whose network section no longer names every option)."""
+    # a config written before the options were retired: their surviving values load (reference_gain
+    # is DAOF-v1's: dropped for the other kinds whatever its value, as it always was)
     network = {"num_cells": 16, "depth": 2, "correction_sigmas": 0.5, "reference_gain": True}
-    if run == "typed-v1":  # the structural options are read off the weights
+    network |= {"correction_bound": "posterior", "innovation_input": True, "window_padding": "same"}
+    if run == "typed-v1":  # today's training config: no retired option
         network = {"num_cells": 16, "depth": 2, "correction_sigmas": 0.5}
     config = {"system": "veh2dof", "scenario": "nominal", "window": 3, "include_controls": True, "network": network}
     config |= {"overrides": {"replay": {"runs": 5, "steps": 10, "seed": 1}}, "seeds": {"normalizer": 7}}
     kinds = {"v1": {"version": "v1"}, "slf": {}, "kind": {"kind": "DAOF-v2"}, "typed-v1": {"kind": "DAOF-v1"}}
     config |= kinds.get(run, {"kind": "DAOF-v1"})
     filter_config = FilterConfig.from_training(config)
-    if run == "typed-v1":
-        filter_config.reference_gain = True
     assert filter_config.kind == {"slf": "SLF", "kind": "DAOF-v2"}.get(run, "DAOF-v1")
-    assert filter_config.reference_gain == (run != "slf" and run != "kind")  # DAOF-v1's option alone
     f = make_filter(filter_config.kind, filter_config)
     f.fit_normalizer(runs=4, steps=50)
     history = [{"frames": 100, "rmse_beta": 0.1}]
     training = {"frames": 100, "updates": 3, "wall": 1.5, "history": history, "best": {}, "next_ckpt": 200}
     blob = {"training": training, "config": config, "filter": f.state_dict(), "rng": capture_rng()}
     blob |= {"optim": torch.optim.Adam(f.parameters()).state_dict(), "logger": None}
-    if run == "filter_config":
-        f.config.correction_bound = "posterior"  # not in the training config: only the filter config says it
-        blob["filter_config"] = dict(vars(f.config))
+    if run == "filter_config":  # as a trainer wrote it before the options were retired
+        blob["filter_config"] = dict(vars(f.config)) | {"correction_bound": "posterior", "reference_gain": True}
+        blob["filter_config"] |= {"innovation_input": True, "window_padding": "same"}
     atomic_save(blob, tmp_path / "checkpoint.pt")
     g = load_filter(tmp_path / "checkpoint.pt", expect={"window": 3})
     assert type(g) is type(f) and g.config == f.config and g.extra["history"] == history
     data = f.system.simulate(2, 20, seed=2)
     torch.testing.assert_close(g.run(data), f.eval().run(data), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    "where, option, value",
+    [
+        ("filter_config", "correction_bound", "kalman"),
+        ("config", "reference_gain", False),
+        ("config", "innovation_input", False),
+        ("saved", "window_padding", "zeros"),
+        ("weights", "reference_gain", False),
+    ],
+)
+def test_load_filter_refuses_a_checkpoint_with_a_retired_option_in_one_line(tmp_path, where, option, value):
+    """A DAOF-v1 saved with an option value that was retired (docs/log/2026-12-07-retired-options.md) is
+    refused with one line naming the option and that log: in the filter config a trainer stored, in an
+    older checkpoint's training config, in a saved filter's config, or only in its weights (no K̄ table)."""
+    f = small("DAOF-v1", window=3)
+    path = tmp_path / "checkpoint.pt"
+    if where == "saved":
+        torch.save({"config": dict(vars(f.config)) | {option: value}, "state_dict": f.state_dict()}, path)
+    else:
+        config = {"kind": "DAOF-v1", "system": "veh2dof", "window": 3, "network": {"num_cells": 16}}
+        state = f.state_dict()
+        blob = {"training": {"frames": 1}, "config": config, "filter": state}
+        if where == "filter_config":
+            blob["filter_config"] = dict(vars(f.config)) | {option: value}
+        elif where == "config":
+            config["network"][option] = value
+        else:
+            del state["reference_gain"]
+        atomic_save(blob, path)
+    with pytest.raises(ValueError) as error:
+        load_filter(path)
+    message = str(error.value)
+    assert "\n" not in message and str(path) in message and "docs/log/2026-12-07-retired-options.md" in message
+    assert f"{option}={value!r} was retired" in message, message
+    # the value that survives loads; another kind never read DAOF-v1's options
+    assert FilterConfig.from_dict({"kind": "DAOF-v2", "system": "veh2dof", "correction_bound": "kalman"}).kind
 
 
 def test_load_filter_reads_best_and_final_files_with_plain_data_only(tmp_path):

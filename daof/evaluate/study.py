@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from daof.envs.recorded import cache_key
 from daof.envs.system import StochasticSystem
 from daof.evaluate.dropout import Dropout
 from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
@@ -131,7 +132,8 @@ def run_study(
     protocol's PF-oracle; the exact Kalman filter ``"KF"`` on the linear system).
     """
     data = system.simulate(runs, steps, seed)
-    key = {"system": system.name, "scenario": system.scenario, "runs": runs, "steps": steps, "seed": seed}
+    # the system's parameters are part of the key: a study of another μ never reuses this one's results
+    key = {k: v for k, v in cache_key(system, runs, steps, seed).items() if k not in ("format", "device")}
     dropout_info = None
     if dropout is not None:
         data = dropout.apply(data, system)

@@ -3,7 +3,7 @@
     r'_t = r_t(a_t) − r_t(0),   r_t(a) = −Σ_i W_t,i (x_t,i − x̂_t,i(a))²
 
 x̂_t(0) is what the filter estimates with a zero action: DAOF-v1's prediction f(x̂_{t−1}, u_{t−1})
-(plus K̄_t ν_t with ``reference_gain``). r_t(0) does not depend on the action, so with γ = 0 the
+plus K̄_t ν_t, its reference update. r_t(0) does not depend on the action, so with γ = 0 the
 critic's target E[r' | h, a] is Q(h, a) minus a function of h alone: the same argmax and the same
 action gradient for the actor. What changes is the noise of the target. With e = x̂_t(0) − x_t,
 
@@ -12,7 +12,7 @@ action gradient for the actor. What changes is the noise of the target. With e =
 so the spread that no action can change (W e², the posterior error) is gone and what is left
 shrinks with |a|: near a = 0, r'/a estimates the optimal action with noise √P⁺/b per sample
 whatever the size of a, where r/a has the noise of W e² / a. A residual policy that starts at
-a = 0 (``reference_gain``) lives exactly there (docs/veh2dof_training.md, session 11).
+a = 0 (DAOF-v1's residual on K̄_t ν_t) lives exactly there (docs/veh2dof_training.md, session 11).
 Training-time only: the reward needs the true state anyway; the deployed filter is unchanged.
 """
 

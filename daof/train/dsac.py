@@ -31,6 +31,7 @@ from torchrl.objectives import SoftUpdate
 from daof.envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
 from daof.envs.history import FRAME_KEY, with_window
 from daof.envs.recorded import find_recorded
+from daof.filters.learned import DAOFv1
 from daof.losses import DSACTLoss
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
@@ -55,7 +56,7 @@ class DSACTTrainer(FilterTrainer):
             raise ValueError(f"DSAC-T trains DAOF-v1 or DAOF-v2, not {cfg.kind!r}")
         super().__init__(cfg, cfg.kind)
         self._make_schedules()
-        if self.filter.config.reference_gain:
+        if isinstance(self.filter, DAOFv1):  # its update is K̄_t ν_t + a residual that starts at 0
             self._start_at_the_reference()
         self._init_window(self.filter.policy.mlp)
         self._make_loss()

@@ -3,10 +3,9 @@
 * ``DAOFv2``: x̂_t = π(h_t^N)                          (model-free; ``DAOFv2Increment``, made by
   ``v2_action="increment"``: x̂_t = x̂_{t−1} + b_t ⊙ π(h_t^N), the same function class with a bound
   b_t sized from data)
-* ``DAOFv1``: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N)  (model predictor + learned update,
-  π ∈ [−1, 1]ⁿ, the bound b_t sized from the noise: see ``FilterConfig.correction_bound``; with
-  ``reference_gain`` the update is K̄_t ν_t + b_t ⊙ π(h_t^N), a learned residual on the update
-  of a UKF's mean gain at step t)
+* ``DAOFv1``: x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t^N)  (model predictor + the update
+  of a UKF's mean gain K̄_t at step t + a learned residual, π ∈ [−1, 1]ⁿ, bounded by b_t =
+  correction_sigmas · that UKF's √diag P⁺_t)
 * ``SLF``:    x̂_t = φ(y_{t−N+1..t}, u_{t−N+1..t})     (open loop, trained by regression)
 
 All share ``LearnedFilter`` (``base``): the network (window normaliser -> MLP -> (loc, log σ)), the
@@ -26,16 +25,16 @@ from collections.abc import Mapping
 from daof.envs.system import StochasticSystem
 from daof.filters.learned.base import KINDS, LearnedFilter, UpdateFilter, filter_class, plain_data
 from daof.filters.learned.checkpoint import load_filter, read_checkpoint
-from daof.filters.learned.config import CORRECTION_BOUNDS, MISSING_FILLS, V2_ACTIONS, FilterConfig
+from daof.filters.learned.config import MISSING_FILLS, RETIRED_OPTIONS, V2_ACTIONS, FilterConfig
 from daof.filters.learned.daof_v1 import DAOFv1
 from daof.filters.learned.daof_v2 import DAOFv2, DAOFv2Increment, increment_scale
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
 from daof.filters.learned.slf import SLF
 
 __all__ = [
-    "CORRECTION_BOUNDS",
     "KINDS",
     "MISSING_FILLS",
+    "RETIRED_OPTIONS",
     "SCHEDULE_STEPS",
     "V2_ACTIONS",
     "DAOFv1",
@@ -92,4 +91,4 @@ def sliding_windows(frames, window: int):
     """
     from daof.envs.history import sliding_windows as windows
 
-    return windows(frames, window, "same")
+    return windows(frames, window)

@@ -95,8 +95,6 @@ class LearnedFilter(nn.Module, Filter):
     acts_by_update: bool = False
     #: the actor's output key: the estimate itself
     action_key: str = "action"
-    #: the config may ask for a reference gain (it needs a model's innovation)
-    accepts_reference_gain: bool = False
     #: the values ``missing_fill`` may take, the first is the default
     missing_fills: tuple[str, ...] = ("hold",)
     #: the policy reads the scaled innovation ν_t (DAOF-v1)
@@ -119,8 +117,6 @@ class LearnedFilter(nn.Module, Filter):
     @classmethod
     def check_config(cls, config: FilterConfig) -> None:
         """Refuse the options this class cannot honour (``FilterConfig`` calls it on construction)."""
-        if config.reference_gain and not cls.accepts_reference_gain:
-            raise ValueError("reference_gain is DAOF-v1's: it needs the model's innovation")
 
     def __init__(self, config: FilterConfig, system: StochasticSystem | None = None):
         nn.Module.__init__(self)
@@ -136,7 +132,6 @@ class LearnedFilter(nn.Module, Filter):
             closed_loop=self.closed_loop,
             include_controls=config.include_controls,
             missing_flags=config.missing_mask,
-            padding=self._window_padding(),
         )
         self.uses_controls = self.layout.uses_controls
         self.startup_input = config.startup_input and self.closed_loop
@@ -163,9 +158,6 @@ class LearnedFilter(nn.Module, Filter):
     # ----------------------------------------------------------------- subclass hooks
     def _check_system(self) -> None:
         """Refuse a system this filter cannot run on."""
-
-    def _window_padding(self) -> str:
-        return self.config.window_padding
 
     def _innovation_feature(self):
         """The function of the window the policy also reads (ν_t), or None."""
@@ -287,7 +279,7 @@ class LearnedFilter(nn.Module, Filter):
         return TensorDictModule(self, in_keys=self.module_in_keys, out_keys=["action"])
 
     def check_env(self, env) -> None:
-        """Refuse, with one line, an env whose window is not this filter's (N, fields, controls, flags, padding)."""
+        """Refuse, with one line, an env whose window is not this filter's (N, fields, controls, flags)."""
         theirs = FrameLayout.of_env(env)
         if theirs != self.layout:
             raise ValueError(
@@ -421,7 +413,7 @@ class UpdateFilter(LearnedFilter):
         raise NotImplementedError
 
     def _initial_bound(self) -> torch.Tensor:
-        """b before it is fitted, per state."""
+        """b before it is fitted, per state (the buffer needs a value when it is registered)."""
         raise NotImplementedError
 
     def _innovation_for(self, window: torch.Tensor, prediction: torch.Tensor) -> torch.Tensor | None:

@@ -53,10 +53,13 @@ def read_checkpoint(path: str | Path):
 
 
 def _filter_config(fields: dict, path: Path) -> FilterConfig:
+    """A stored filter config; one written before options were retired loads if it holds their surviving values."""
     try:
-        return FilterConfig(**fields)
+        return FilterConfig.from_dict(fields)
     except TypeError as error:  # a field this version does not know
         raise ValueError(f"checkpoint {path} has a filter config this version cannot read ({error})") from None
+    except ValueError as error:  # a retired option with a value that no longer exists (or an invalid one)
+        raise ValueError(f"checkpoint {path}: {error}") from None
 
 
 def _contents(blob, path: Path) -> tuple[FilterConfig, dict, dict, dict]:
@@ -73,7 +76,10 @@ def _contents(blob, path: Path) -> tuple[FilterConfig, dict, dict, dict]:
         if blob.get("filter_config"):  # the filter's own config, as the trainer built it
             config = _filter_config(blob["filter_config"], path)
         else:  # older checkpoints: from the training config
-            config = FilterConfig.from_training(run, blob["filter"])
+            try:
+                config = FilterConfig.from_training(run, blob["filter"])
+            except ValueError as error:
+                raise ValueError(f"checkpoint {path}: {error}") from None
         return config, blob["filter"], extra, overrides
     raise ValueError(f"{path} is not a learned-filter checkpoint")
 

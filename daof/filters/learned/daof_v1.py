@@ -1,9 +1,10 @@
-"""DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N), a model predictor plus a learned, bounded update.
+"""DAOF-v1: x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t^N), a model predictor, a reference update and a
+learned, bounded residual.
 
-π ∈ [−1, 1]ⁿ; the bound b_t is sized from the noise (``FilterConfig.correction_bound``) per
-start-up step. With ``reference_gain`` the update is K̄_t ν_t + b_t ⊙ π(h_t^N), a learned residual
-on the update of a UKF's mean gain at step t. With ``innovation_input`` the network also reads
-ν_t / √diag S_t. A missing measurement reads as its prediction (``missing_fill``).
+π ∈ [−1, 1]ⁿ; K̄_t is a UKF's mean Kalman gain at step t, ν_t the innovation of the prediction and
+b_t = correction_sigmas · that UKF's √diag P⁺_t (``set_schedules``). Where its frame allows (it holds
+u_t and u_{t−1}, or the system has no controls) the network also reads ν_t / √diag S_t. A missing
+measurement reads as its prediction (``missing_fill``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ class DAOFv1(UpdateFilter):
     """DAOF-v1 (module docstring): needs a system with a model (``has_model``)."""
 
     kind = "DAOF-v1"
-    accepts_reference_gain = True
     # reading the prediction beats holding the last value on every gap pattern measured
     # (benchmarks/missing_data.py, docs/missing_data.md); the others have no model to predict with
     missing_fills = ("prediction", "hold")
@@ -40,20 +40,19 @@ class DAOFv1(UpdateFilter):
     @property
     def innovation_input(self) -> bool:
         """Whether the network reads ν_t: it needs u_t and u_{t−1} in the frame when the system has controls."""
-        return self.config.innovation_input and (self.uses_controls or self.system.control_dim == 0)
+        return self.uses_controls or self.system.control_dim == 0
 
     def _innovation_feature(self):
         return self.innovation if self.innovation_input else None
 
     def _initial_bound(self) -> torch.Tensor:
-        # the process-noise bound; ``set_schedules`` widens it for "kalman"
+        # a placeholder for a filter whose schedules are not set yet (``set_schedules`` replaces it): the process noise
         return self.config.correction_sigmas * self.system.process_noise.covariance.diagonal().sqrt()
 
     def _register_action_buffers(self) -> None:
         super()._register_action_buffers()
-        if self.config.reference_gain:  # only then: checkpoints saved before the option existed load as they are
-            s = self.system
-            self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, s.state_dim, s.measurement_dim))
+        s = self.system
+        self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, s.state_dim, s.measurement_dim))
 
     # ----------------------------------------------------------------- model
     def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
@@ -76,12 +75,10 @@ class DAOFv1(UpdateFilter):
         return frame[..., at("measurement")] - s.g(prediction, u)
 
     def _innovation_for(self, window: torch.Tensor, prediction: torch.Tensor) -> torch.Tensor | None:
-        return self.innovation(window, prediction) if self.innovation_input or self.config.reference_gain else None
+        return self.innovation(window, prediction)
 
     def reference_update(self, window: torch.Tensor, prediction: torch.Tensor, step, nu=None) -> torch.Tensor | None:
-        """K̄_t ν_t, the update of the reference gain (``reference_gain``), or None without it."""
-        if not self.config.reference_gain:
-            return None
+        """K̄_t ν_t, the update of the reference gain ``reference_gain`` (K̄_t per step t)."""
         if nu is None:
             nu = self.innovation(window, prediction)
         return (schedule_row(self.reference_gain, step) @ nu.unsqueeze(-1)).squeeze(-1)
@@ -91,10 +88,9 @@ class DAOFv1(UpdateFilter):
     def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
         """The per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
 
-        The update bound b_t = correction_sigmas · max(sqrt(diag Q), schedule["update"]_t) (for
-        the "kalman" bound; schedule["estimate"]_t for "posterior"), the innovation scale √diag S_t
-        = schedule["innovation"]_t (with the innovation input) and, with ``reference_gain``, the gain
-        K̄_t = schedule["gain"]_t. A shorter schedule is held at its last row. Stored in the checkpoint.
+        The update bound b_t = correction_sigmas · schedule["estimate"]_t (√diag P⁺_t), the gain
+        K̄_t = schedule["gain"]_t and, with the innovation input, its scale √diag S_t =
+        schedule["innovation"]_t. A shorter schedule is held at its last row. Stored in the checkpoint.
         """
 
         def rows(values: torch.Tensor) -> torch.Tensor:
@@ -102,13 +98,8 @@ class DAOFv1(UpdateFilter):
             return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
 
         sigmas = self.config.correction_sigmas
-        if self.config.correction_bound == "kalman":
-            floor = self.system.process_noise.covariance.diagonal().sqrt().to(self.correction_scale)
-            self.correction_scale.copy_(sigmas * torch.maximum(rows(schedule["update"]), floor))
-        elif self.config.correction_bound == "posterior":
-            self.correction_scale.copy_(sigmas * rows(schedule["estimate"]).clamp_min(1e-12))
-        if self.config.reference_gain:
-            self.reference_gain.copy_(rows(schedule["gain"]))
+        self.correction_scale.copy_(sigmas * rows(schedule["estimate"]).clamp_min(1e-12))
+        self.reference_gain.copy_(rows(schedule["gain"]))
         if self.innovation_input:
             self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
 

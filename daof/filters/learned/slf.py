@@ -22,9 +22,6 @@ class SLF(LearnedFilter):
     kind = "SLF"
     closed_loop = False
 
-    def _window_padding(self) -> str:
-        return "same"
-
     def _frame(self, prev_estimate: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
         return measured  # open loop: no fed-back estimate in the frame
 
