@@ -1,4 +1,4 @@
-"""RMSE and cost per estimate of the classical baselines on veh2dof (specs/benchmark.md).
+"""RMSE and cost per estimate of the classical baselines on veh2dof (docs/design.md, "The benchmark protocol").
 
     .venv/bin/python benchmarks/bench_classical.py --runs 20 --steps 500 --threads 1
     .venv/bin/python benchmarks/bench_classical.py --scenario mismatch --oracle-particles 20000

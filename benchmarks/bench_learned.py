@@ -1,4 +1,4 @@
-"""Cost per estimate of the learned filters at batch 1, next to the UKF and EKF (specs/benchmark.md).
+"""Cost per estimate of the learned filters at batch 1, next to the UKF and EKF (docs/design.md, protocol).
 
     .venv/bin/python benchmarks/bench_learned.py --threads 1
     .venv/bin/python benchmarks/bench_learned.py --checkpoint runs/veh2dof/nominal/daof-v1-N20-s1/best.pt

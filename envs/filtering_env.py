@@ -1,6 +1,6 @@
 """FilteringEnv: any StochasticSystem as a natively batched TorchRL environment.
 
-The filtering MDP (DESIGN.md): at step t the agent sees the measurement y_t, the known controls
+The filtering MDP (docs/design.md): at step t the agent sees the measurement y_t, the known controls
 u_t and u_{t−1}, and its own previous estimate x̂_{t−1}; its action is the estimate x̂_t; the
 reward is r_t = −‖x_t − x̂_t‖²_W. After a reset the previous estimate is the prior mean x̂_0 and
 the first measurement is y_1 (see ``daof.envs.system`` for the time convention).

@@ -1,7 +1,7 @@
 """``RecordedSystem``: replay a recorded bank of episodes instead of simulating them afresh.
 
 A filter's estimates never feed back into the simulated trajectory, so the episodes an env serves
-can be simulated once and replayed (shared/specs/veh14dof.md §0). That pays off when simulating
+can be simulated once and replayed (docs/experiment2.md). That pays off when simulating
 is expensive and batches badly: veh14dof costs ~70 ms per env step at batch 32 but simulates
 ~15× more steps per second at batch 1024. The wrapper is a ``StochasticSystem`` that
 ``FilteringEnv`` runs unchanged:

@@ -1,4 +1,4 @@
-"""The 2-DOF single-track vehicle of Experiment I (shared/specs/veh2dof.md).
+"""The 2-DOF single-track vehicle of Experiment I (docs/design.md, "veh2dof").
 
 State x = [β, r] (side slip, yaw rate), control u = δ_f (front steer, known), measurement
 y = [a_y, r] + ζ. Magic-Formula tyres on both axles, explicit Euler at Δτ = 0.02 s,

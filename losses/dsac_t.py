@@ -1,6 +1,6 @@
 """DSAC-T: distributional soft actor-critic with the three refinements, as a TorchRL loss.
 
-Follows ``specs/dsac_t.md`` (the GOPS ``dsact.py`` form of the algorithm) and the structure of
+Follows DSAC-T as ``docs/design.md`` states it (the GOPS ``dsact.py`` form of the algorithm) and the structure of
 TorchRL's ``SACLoss``/``TQCLoss``: functional actor and critics with target copies, ``vmap`` over
 the critic ensemble, a TD(0) value estimator for the targets y_q and y_z, and keys set through
 ``_AcceptedKeys``/``set_keys``. The critic outputs (μ, raw scale) on its last dim, σ = softplus(raw).

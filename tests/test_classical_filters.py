@@ -2,7 +2,7 @@
 
 Pins down: the EKF Jacobians (vs finite differences) and the numpy model (vs the torch system);
 systematic resampling identical to filterpy's; the KF at its stationary Riccati RMSE on
-``linear``; EKF/UKF/PF equal the KF there; veh2dof RMSEs in the ballpark of specs/veh2dof.md;
+``linear``; EKF/UKF/PF equal the KF there; veh2dof RMSEs in the ballpark of the spec's prototype figures;
 the counted covariance repair; divergence kept as NaN; input validation.
 """
 
@@ -25,7 +25,7 @@ from daof.filters import (
 )
 from daof.filters.kalman import make_model
 
-# specs/veh2dof.md reference RMSE [β rad, r rad/s] (prototype figures, order of magnitude only)
+# the spec's prototype reference RMSE [β rad, r rad/s] (prototype figures, order of magnitude only)
 UKF_REFERENCE = torch.tensor([0.0104, 0.0263])
 PF_REFERENCE = torch.tensor([0.0093, 0.0232])
 

@@ -1,5 +1,5 @@
 """DSACTLoss: the surrogate's gradients, the clip, the argmin-mean z′, α₀, bootstrapping, σ̄
-checkpointing, a custom action key and the target updates (specs/dsac_t.md)."""
+checkpointing, a custom action key and the target updates (docs/design.md, "DSAC-T")."""
 
 import math
 

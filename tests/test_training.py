@@ -575,7 +575,7 @@ def test_the_zero_action_baseline_takes_the_reward_of_the_zero_update_off(tmp_pa
 
 
 def test_critic_init_resampled_is_torchrls_copy_which_loses_the_structured_init(tmp_path):
-    """network.critic_init=resampled (the runs before session 15): TorchRL expands one critic and
+    """network.critic_init=resampled (the runs before 115f8b2): TorchRL expands one critic and
     re-samples its copies in [min, max], so the quadratic critic's m(h) rows are not 0."""
     trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **RESIDUAL, **{"network.critic_init": "resampled"}))
     n = trainer.system.state_dim

@@ -1,4 +1,4 @@
-"""veh14dof: the §10 sanity checks of shared/specs/veh14dof.md and the StochasticSystem contract.
+"""veh14dof: the simulator spec's sanity checks (docs/design.md, "veh14dof") and the StochasticSystem contract.
 
 The CI checks run one float32 batch (the default dtype) of 3 s at h = 1 ms: the nominal turn
 (App. A rows 1.5–3.0 s, which include the steady state), a steering sweep at 70 km/h (T6, T7),

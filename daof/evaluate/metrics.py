@@ -1,4 +1,4 @@
-"""The protocol's accuracy metrics (shared/specs/benchmark.md, "Metrics")."""
+"""The protocol's accuracy metrics (docs/design.md, "The benchmark protocol")."""
 
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ A NaN measurement channel is missing (sensor dropout): that step updates with th
 channels only (the rows S of H or g, R[S, S]), or only predicts if none is present
 (docs/missing_data.md). Steps with every channel present run the unchanged filterpy step.
 
-Two numerical rules from specs/benchmark.md: a covariance that is no longer positive definite is
+Two numerical rules of the benchmark protocol (docs/design.md): a covariance that is no longer positive definite is
 repaired (symmetrise, add jitter until Cholesky succeeds) and counted in ``stats["repairs"]``; a run
 whose estimate becomes non-finite (or whose algebra fails) is kept, its remaining estimates are NaN,
 and it is counted in ``stats["diverged"]`` — it never stops the study.

@@ -1,4 +1,4 @@
-"""Bootstrap particle filter, batched in torch over runs × particles (specs/benchmark.md, PF row).
+"""Bootstrap particle filter, batched in torch over runs × particles (docs/design.md, "The benchmark protocol").
 
 Transitions are sampled from the system's true process noise around the nominal f, weights come
 from the exact measurement log-density log p(y_t − g(x_t, u_t)), all in log space. The estimate is

@@ -12,7 +12,7 @@ action gradient for the actor. What changes is the noise of the target. With e =
 so the spread that no action can change (W e², the posterior error) is gone and what is left
 shrinks with |a|: near a = 0, r'/a estimates the optimal action with noise √P⁺/b per sample
 whatever the size of a, where r/a has the noise of W e² / a. A residual policy that starts at
-a = 0 (DAOF-v1's residual on K̄_t ν_t) lives exactly there (docs/veh2dof_training.md, session 11).
+a = 0 (DAOF-v1's residual on K̄_t ν_t) lives exactly there (docs/linear_check.md; log 2026-12-03).
 Training-time only: the reward needs the true state anyway; the deployed filter is unchanged.
 """
 

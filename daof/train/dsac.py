@@ -89,7 +89,7 @@ class DSACTTrainer(FilterTrainer):
         terms = self.system.state_dim if per_state else 1
         form = str(cfg.network.critic_form)
         # "own": each of the two critics keeps its own init (the quadratic critic's m(h) = 0, the
-        # window init); "resampled": one critic that TorchRL copies and re-samples (the pre-session-15 runs)
+        # window init); "resampled": one critic that TorchRL copies and re-samples (the runs before 115f8b2)
         init = str(cfg.network.critic_init)
         if init not in ("own", "resampled"):
             raise ValueError(f"network.critic_init must be 'own' or 'resampled', got {init!r}")

@@ -58,7 +58,7 @@ class FilterCritic(nn.Module):
     p_i = W_i w_i² and the critic learns only V(h), its scale and m(h) = E[a* | h], the action of
     the estimate E[x | h]. Its action-ranking is then exact by construction, and its precision is
     that of the regression m(h), not that of a surface fitted over the whole action range
-    (docs/experiment2.md, session 18). ``reward_weights`` is W ([n], or a [S, n] schedule read
+    (docs/experiment2.md; log 2026-12-04). ``reward_weights`` is W ([n], or a [S, n] schedule read
     at the step the actor reads; without the step, its settled row).
 
     ``scale="reward"`` (quadratic forms, a critic per state) gives σ the spread a quadratic reward

@@ -1,4 +1,4 @@
-"""The 14-DOF passenger-car simulator of Experiment II (shared/specs/veh14dof.md).
+"""The 14-DOF passenger-car simulator of Experiment II (docs/design.md, "veh14dof").
 
 Modules: ``params`` (every number), ``tyre`` (MF 5.2 combined slip), ``dynamics`` (the 28-state
 ODE), ``integrate`` (RK4 at h = 1 ms), ``manoeuvre`` (steering profile and PI speed holder),

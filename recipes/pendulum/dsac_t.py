@@ -1,6 +1,6 @@
 """Train DSAC-T (or TorchRL's SAC, ``loss.name=sac``) on Pendulum-v1, one update per env step.
 
-The check of specs/dsac_t.md: a deterministic mean return ≥ −200 over 10 episodes within
+The check of DSAC-T (docs/pendulum.md): a deterministic mean return ≥ −200 over 10 episodes within
 15,000 environment steps, level with SAC on the same networks and budget.
 
     python recipes/pendulum/dsac_t.py env.seed=0                 # DSAC-T
