@@ -618,3 +618,41 @@ def test_load_filter_reads_a_training_checkpoint(tmp_path, name, version):
     assert type(loaded) is type(trainer.filter) and loaded.config == trainer.filter.config
     data = trainer.val_data
     torch.testing.assert_close(loaded.run(data), trainer.filter.eval().run(data), rtol=0, atol=0)
+
+
+def test_a_run_directory_is_locked_while_a_trainer_owns_it(tmp_path):
+    """A second trainer in a directory a live training holds is refused in one line; the lock goes with the run."""
+    from daof.train.lock import RunDirectoryBusy, lock_run_directory
+
+    held = lock_run_directory(tmp_path)
+    trainer = SLFTrainer(tiny_cfg("slf.yaml", tmp_path, **{"collector.total_frames": 100}))
+    with pytest.raises(RunDirectoryBusy, match=f"run directory {tmp_path} is in use by another training"):
+        trainer.train()
+    held.close()
+    assert trainer.train()["frames"] >= 100
+    lock_run_directory(tmp_path).close()  # released when the run finished
+
+
+def test_a_fresh_run_moves_another_runs_files_aside(tmp_path):
+    """A directory never mixes two runs: the old run's files go to previous-1 before the new one writes."""
+    SLFTrainer(tiny_cfg("slf.yaml", tmp_path, **{"collector.total_frames": 100})).train()
+    first = (tmp_path / "best.pt").read_bytes()
+    SLFTrainer(tiny_cfg("slf.yaml", tmp_path, window=4, **{"collector.total_frames": 100})).train()
+    assert (tmp_path / "previous-1" / "best.pt").read_bytes() == first
+    assert load_filter(tmp_path / "best.pt").config.window == 4
+
+
+def test_resume_rewrites_best_pt_from_the_checkpoint_and_refuses_another_seed(tmp_path):
+    """best.pt written after the last checkpoint belongs to a discarded stretch: a resume restores the checkpoint's."""
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"collector.total_frames": 400, "checkpoint.every_frames": 100000})
+    trainer = DSACTTrainer(cfg)
+    trainer.train()  # its checkpoint is the final one; fake a later, discarded best.pt
+    recorded = torch.load(tmp_path / "checkpoint.pt", weights_only=True)["best_filter"]["extra"]["frames"]
+    (tmp_path / "best.pt").write_bytes(b"a best.pt of a discarded stretch")
+    again = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, **{"collector.total_frames": 400}))
+    again.resume(tmp_path / "checkpoint.pt")
+    assert load_filter(tmp_path / "best.pt").extra["frames"] == recorded
+    again._release_directory()
+    other = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, seed=2, **{"collector.total_frames": 400}))
+    with pytest.raises(ValueError, match="checkpoint .* is for seed=1, this run has 2"):
+        other.resume(tmp_path / "checkpoint.pt")

@@ -21,6 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -144,7 +145,8 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
     failed = []
     last_status = time.monotonic()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM"))
+    main_thread = threading.current_thread() is threading.main_thread()  # signal handlers live there only
+    previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM")) if main_thread else None
     try:
         while pending or running:
             while pending and len(running) < parallel:
@@ -175,6 +177,7 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
                     log(f"  {job.name}: {_last_progress(log_path)}")
     finally:
         _stop(running)
-        signal.signal(signal.SIGTERM, previous)
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     if failed:
         raise RuntimeError(f"training failed for {failed}; rerun the same command to resume")

@@ -35,7 +35,10 @@ __all__ = ["RUN_CONFIG", "FilterTrainer", "comparable_config"]
 RUN_FILES = (RUN_CONFIG, "best.pt", "final.pt", "checkpoint.pt", "summary.json", "learning_curve.csv",
              "learning_curve.png")  # fmt: skip
 #: config keys a run may change when it is resumed
-RESUMABLE_CHANGES = ("resume", "output_dir", "threads", "collector.total_frames", "logger.backend", "logger.mode")
+RESUMABLE_CHANGES = (
+    "resume", "output_dir", "threads", "collector.total_frames", "checkpoint.every_frames",
+    "logger.backend", "logger.mode",
+)  # fmt: skip
 
 
 def comparable_config(config: dict) -> dict:
