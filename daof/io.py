@@ -116,7 +116,7 @@ def safe_load(path: str | Path, map_location="cpu"):
             with torch.serialization.safe_globals(_LEGACY_NUMPY_GLOBALS):
                 return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch and pickle raise many kinds for a bad file
-        raise ValueError(f"cannot load {path}: {_reason(error)}") from None
+        raise ValueError(f"{path} is not a readable checkpoint ({_reason(error)})") from None
 
 
 def _needs_only_legacy_numpy(path: Path) -> bool:

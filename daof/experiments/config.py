@@ -14,11 +14,7 @@ Every key: ``docs/experiments.md``.
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
 import string
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,6 +25,7 @@ from hydra.errors import HydraException
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from daof.config_checks import check_override_keys, one_line
 from daof.evaluate.report import PAPER_TABLES, Layout
 from daof.train.config import CONF_DIR as TRAIN_CONF_DIR
 
@@ -187,47 +184,6 @@ def register_configs() -> None:
     OmegaConf.register_new_resolver("abspath", lambda p: None if p is None else str(Path(p).resolve()), replace=True)
 
 
-# ----------------------------------------------------------------------------------------- keys
-def _dataclass_of(tp) -> type | None:
-    """The dataclass a field's type holds (``X``, ``X | None``), or None."""
-    if dataclasses.is_dataclass(tp):
-        return tp
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        return next((arg for arg in typing.get_args(tp) if dataclasses.is_dataclass(arg)), None)
-    return None
-
-
-def _known_key(schema: type, parts: list[str]) -> str | None:
-    """None if ``parts`` is a key of ``schema``, else the nearest valid key at the level that failed ("": none)."""
-    hints = typing.get_type_hints(schema)
-    head, rest = parts[0], parts[1:]
-    if head not in hints:
-        near = difflib.get_close_matches(head, sorted(hints), n=1)
-        return near[0] if near else ""
-    if not rest:
-        return None
-    tp = hints[head]
-    inner = _dataclass_of(tp)
-    if inner is not None:
-        return _known_key(inner, rest)
-    value = _dataclass_of(typing.get_args(tp)[1]) if typing.get_origin(tp) is dict else None
-    if value is not None and len(rest) > 1:  # any key of the dict (profiles.tiny), then the value's own fields
-        return _known_key(value, rest[1:])
-    return None  # a key of a free-form dict, or an element: left to OmegaConf
-
-
-def _check_override_keys(overrides: list[str]) -> None:
-    """An override of a key the schema does not have is refused, with the nearest valid key."""
-    for item in overrides:
-        if "=" not in item and not item.startswith("~"):
-            raise ValueError(f"override {item!r} is not key=value")
-        key = item.split("=", 1)[0].lstrip("+~")
-        near = _known_key(ExperimentConfig, key.split("."))
-        if near is not None:
-            hint = f"; did you mean {near!r}?" if near else ""
-            raise ValueError(f"unknown experiment key {key!r}{hint} (docs/experiments.md lists every key)")
-
-
 # ----------------------------------------------------------------------------------------- compose
 def compose_experiment(name: str, overrides: list[str] = ()) -> DictConfig:
     """Experiment ``name``'s config with command-line style ``overrides``, unresolved (``for_scenario``
@@ -235,28 +191,17 @@ def compose_experiment(name: str, overrides: list[str] = ()) -> DictConfig:
     overrides = list(overrides)
     if name not in experiment_names():
         raise ValueError(f"unknown experiment {name!r}; valid: {', '.join(experiment_names())}")
-    _check_override_keys(overrides)
+    check_override_keys(ExperimentConfig, overrides, "experiment", "docs/experiments.md lists every key")
     register_configs()
     try:
         with initialize_config_dir(config_dir=str(EXPERIMENT_DIR), version_base="1.3"):
             cfg = compose(config_name=name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as error:
-        raise ValueError(_one_line(error)) from None
+        raise ValueError(one_line(error)) from None
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ValueError(f"experiment {name}: key(s) {missing} have no value")
     return cfg
-
-
-def _one_line(error: BaseException) -> str:
-    """Hydra's or OmegaConf's message, and its cause's, on one line."""
-    parts = []
-    while error is not None and len(parts) < 2:
-        lines = [x.strip() for x in str(error).strip().splitlines() if x.strip()]
-        lines = [x for x in lines if not x.startswith(("full_key", "object_type", "reference_type", "To append"))]
-        parts += [x.rstrip(".") for x in lines[: 2 - len(parts)] if x.rstrip(".") not in parts]
-        error = error.__cause__
-    return ": ".join(parts) or "invalid experiment config"
 
 
 def for_scenario(cfg: DictConfig, scenario: str) -> ExperimentConfig:
@@ -267,7 +212,7 @@ def for_scenario(cfg: DictConfig, scenario: str) -> ExperimentConfig:
         OmegaConf.resolve(out)
         return OmegaConf.to_object(out)
     except OmegaConfBaseException as error:
-        raise ValueError(_one_line(error)) from None
+        raise ValueError(one_line(error)) from None
 
 
 # ----------------------------------------------------------------------------------------- checks

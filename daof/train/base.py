@@ -55,9 +55,14 @@ def comparable_config(config: dict) -> dict:
 
 
 class FilterTrainer:
-    """Base of the training runs; ``kind`` is the filter kind (``DAOF-v1``, ``DAOF-v2``, ``SLF``)."""
+    """Base of the training runs of the filter kinds in ``kinds`` (``cfg.kind`` says which one)."""
 
-    def __init__(self, cfg: DictConfig, kind: str):
+    #: the filter kinds this trainer learns
+    kinds: tuple[str, ...] = ()
+
+    def __init__(self, cfg: DictConfig):
+        if cfg.kind not in self.kinds:
+            raise ValueError(f"{type(self).__name__} trains {' or '.join(self.kinds)}, not {cfg.kind!r}")
         self.cfg = cfg
         torch.set_num_threads(int(cfg.threads))
         torch.manual_seed(int(cfg.seed))
@@ -69,8 +74,6 @@ class FilterTrainer:
         self._lock = None
         self._resumed = False
         self.system = make_system(cfg.system, cfg.scenario, **cfg.overrides)
-        if kind != cfg.kind:
-            raise ValueError(f"a {type(self).__name__} trains {kind}, the config asks for {cfg.kind}")
         self.filter = LearnedFilter(FilterConfig.from_training(cfg), self.system)
         self.filter.fit_normalizer(seed=int(cfg.seeds.normalizer))
         v = cfg.validation

@@ -11,8 +11,6 @@ Why each default is what it is: ``docs/training.md``.
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +21,8 @@ from hydra.core.config_store import ConfigStore
 from hydra.errors import HydraException
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+
+from daof.config_checks import check_override_keys, one_line
 
 __all__ = ["CONF_DIR", "FILTER_KINDS", "TrainConfig", "check_config", "compose_config", "register_configs"]
 
@@ -238,30 +238,6 @@ def register_configs() -> None:
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
 
 
-def schema_keys(schema=TrainConfig, prefix: str = "") -> set[str]:
-    """Every dotted key of the schema (``network.num_cells``, ...); ``overrides`` takes any sub-key."""
-    keys = set()
-    for f in dataclasses.fields(schema):
-        keys.add(prefix + f.name)
-        if isinstance(f.default_factory, type) and dataclasses.is_dataclass(f.default_factory):
-            keys |= schema_keys(f.default_factory, f"{prefix}{f.name}.")
-    return keys
-
-
-def _check_override_keys(overrides: list[str]) -> None:
-    """An override of a key the schema does not have is refused, with the nearest valid key."""
-    known = schema_keys()
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"override {item!r} is not key=value")
-        key = item.split("=", 1)[0].lstrip("+~")
-        if key in GROUPS or key in known or key.startswith("overrides.") or key.startswith("hydra"):
-            continue
-        near = difflib.get_close_matches(key, sorted(known | set(GROUPS)), n=1)
-        hint = f"; did you mean {near[0]!r}?" if near else ""
-        raise ValueError(f"unknown config key {key!r}{hint} (python -m daof.train --cfg lists every key)")
-
-
 def _group_error(error: Exception) -> str | None:
     """One line for an unknown choice of a config group (``system=foo``), or None."""
     text = str(error)
@@ -280,7 +256,7 @@ def compose_config(overrides: list[str] = ()) -> DictConfig:
     value) is one ``ValueError`` line, raised before any work.
     """
     overrides = list(overrides)
-    _check_override_keys(overrides)
+    check_override_keys(TrainConfig, overrides, "config", "python -m daof.train --cfg lists every key", GROUPS)
     # system parameters are free-form: ``overrides.mu=0.8`` adds or replaces one
     overrides = ["++" + o.lstrip("+") if o.lstrip("+~").startswith("overrides.") else o for o in overrides]
     register_configs()
@@ -289,10 +265,7 @@ def compose_config(overrides: list[str] = ()) -> DictConfig:
             cfg = compose(config_name="train", overrides=overrides)
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as error:
-        text = f"{error}\n{error.__cause__}" if error.__cause__ is not None else str(error)
-        lines = [x.strip() for x in text.strip().splitlines() if x.strip()]
-        lines = [x for x in lines if not x.startswith(("full_key", "object_type", "To append"))]
-        raise ValueError(_group_error(error) or ": ".join(lines[:2]) or type(error).__name__) from None
+        raise ValueError(_group_error(error) or one_line(error)) from None
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ValueError(f"config key(s) {missing} have no value")

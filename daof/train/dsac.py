@@ -51,10 +51,10 @@ _LOGGED = ("loss_qvalue", "loss_actor", "alpha", "entropy", "td_error_abs", "nll
 class DSACTTrainer(FilterTrainer):
     """Owns every piece of one DSAC-T training run; ``train()`` runs (or resumes) it."""
 
+    kinds = ("DAOF-v1", "DAOF-v2")
+
     def __init__(self, cfg: DictConfig):
-        if cfg.kind not in ("DAOF-v1", "DAOF-v2"):
-            raise ValueError(f"DSAC-T trains DAOF-v1 or DAOF-v2, not {cfg.kind!r}")
-        super().__init__(cfg, cfg.kind)
+        super().__init__(cfg)
         self._make_schedules()
         if isinstance(self.filter, DAOFv1):  # its update is K̄_t ν_t + a residual that starts at 0
             self._start_at_the_reference()

@@ -34,10 +34,10 @@ def gap_seed(simulation_seed: int) -> int:
 class SLFTrainer(FilterTrainer):
     """Regression of x_t on the open-loop window; ``train()`` runs (or resumes) it."""
 
+    kinds = ("SLF",)
+
     def __init__(self, cfg: DictConfig):
-        if cfg.kind != "SLF":
-            raise ValueError(f"the supervised trainer trains the SLF, not {cfg.kind!r}")
-        super().__init__(cfg, "SLF")
+        super().__init__(cfg)
         self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(cfg.optim.lr))
         s = self.system
         self.weights = 1.0 / (s.state_dim * s.error_scale**2)

@@ -24,7 +24,7 @@ from collections.abc import Mapping
 
 from daof.envs.system import StochasticSystem
 from daof.filters.learned.base import KINDS, LearnedFilter, UpdateFilter, filter_class, plain_data
-from daof.filters.learned.checkpoint import load_filter, read_checkpoint
+from daof.filters.learned.checkpoint import load_filter
 from daof.filters.learned.config import MISSING_FILLS, RETIRED_OPTIONS, V2_ACTIONS, FilterConfig
 from daof.filters.learned.daof_v1 import DAOFv1
 from daof.filters.learned.daof_v2 import DAOFv2, DAOFv2Increment, increment_scale
@@ -51,7 +51,6 @@ __all__ = [
     "load_filter",
     "make_filter",
     "plain_data",
-    "read_checkpoint",
     "schedule_row",
     "sliding_windows",
     "startup_feature",

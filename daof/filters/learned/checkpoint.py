@@ -1,56 +1,20 @@
 """``load_filter``: a learned filter from a saved file (``best.pt``, ``final.pt``) or a training ``checkpoint.pt``.
 
-Files are read with ``torch.load(weights_only=True)``: tensors and plain data only, never code.
-A training checkpoint also holds numpy's RNG state, so numpy arrays (the reconstruct function,
-``ndarray`` and ``dtype``) are allowed too; nothing else is.
+Files are read with ``daof.io.safe_load`` (``torch.load(weights_only=True)``): tensors and plain
+data only, never code; a bad file is one ``ValueError`` line naming it.
 """
 
 from __future__ import annotations
 
-import pickle
-import re
-import warnings
 from pathlib import Path
-
-import numpy as np
-import torch
 
 from daof.envs.registry import make_system
 from daof.envs.system import StochasticSystem
 from daof.filters.learned.base import LearnedFilter
 from daof.filters.learned.config import FilterConfig
+from daof.io import safe_load
 
-__all__ = ["load_filter", "read_checkpoint"]
-
-_NUMPY_ARRAYS = [
-    np._core.multiarray._reconstruct if hasattr(np, "_core") else np.core.multiarray._reconstruct,
-    np.ndarray,
-    np.dtype,
-    type(np.dtype(np.uint32)),
-]
-
-
-def read_checkpoint(path: str | Path):
-    """The contents of a torch file as tensors and plain data; one-line ``ValueError`` naming the file otherwise.
-
-    A file that would need any other object (code, a class to rebuild) is refused unread: its
-    pickle never runs. An empty, truncated or foreign file is refused as unreadable.
-    """
-    try:
-        with torch.serialization.safe_globals(_NUMPY_ARRAYS), warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Detected pickle protocol")  # a foreign pickle: refused below
-            return torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as error:
-        found = re.search(r"GLOBAL (\S+)", str(error))
-        if found is None:
-            raise ValueError(f"{path} is not a readable checkpoint (empty, truncated or not a torch file)") from None
-        raise ValueError(
-            f"{path} holds objects other than tensors and plain data ({found.group(1)}); refusing to load it"
-        ) from None
-    except Exception as error:  # noqa: BLE001  (EOFError, zip errors, ...: all mean the same here)
-        what = f"empty, truncated or not a torch file: {type(error).__name__}"
-        raise ValueError(f"{path} is not a readable checkpoint ({what})") from None
-
+__all__ = ["load_filter"]
 
 def _filter_config(fields: dict, path: Path) -> FilterConfig:
     """A stored filter config; one written before options were retired loads if it holds their surviving values."""
@@ -94,7 +58,7 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no filter checkpoint at {path}")
-    config, state, extra, overrides = _contents(read_checkpoint(path), path)
+    config, state, extra, overrides = _contents(safe_load(path), path)
     for key, value in (expect or {}).items():
         if getattr(config, key) != value:
             raise ValueError(f"checkpoint {path} has {key}={getattr(config, key)!r}, expected {value!r}")
