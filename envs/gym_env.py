@@ -1,8 +1,9 @@
 """The filtering MDP as a single-episode gymnasium env, registered as ``daof/Veh2DOF-v0``.
 
-Importing ``daof.envs`` registers the id. gymnasium (1.x) loads no plugins by itself, so a fresh
-interpreter names the module in the id: ``gymnasium.make("daof.envs:daof/Veh2DOF-v0")``; TorchRL's
-``GymEnv("daof/Veh2DOF-v0")`` works once ``daof.envs`` is imported.
+Importing ``daof.envs`` registers the id. gymnasium 1.0 removed the plugin entry points through
+which an installed package registered its ids at gymnasium's import (the ``module:id`` form replaced
+them), so a fresh interpreter names the module in the id: ``gymnasium.make("daof.envs:daof/Veh2DOF-v0")``;
+TorchRL's ``GymEnv("daof/Veh2DOF-v0")`` works once ``daof.envs`` is imported.
 
 Same MDP as ``daof.envs.filtering_env.FilteringEnv`` with batch 1 and its history window: the
 observation is h_t^N (the last N frames [x̂_{t−1}, y_t, u_t, u_{t−1}], oldest first, padded with

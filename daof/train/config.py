@@ -1,6 +1,7 @@
 """The one typed training configuration: every key of a training run, its type and its default.
 
-The dataclasses below are the only place a default lives. They are registered with Hydra's
+The dataclasses below are the only place a default lives (a learned filter's own options take
+theirs from ``FilterConfig``, the checkpoint's record of a filter). They are registered with Hydra's
 ConfigStore as ``train_schema``; the YAML files in ``daof/conf`` (one per filter kind, one per
 system, and a few per system and filter) hold only what differs from them. Hydra refuses an
 unknown key or a value of the wrong type before anything runs; ``check_config`` then refuses
@@ -23,6 +24,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from daof.config_checks import check_override_keys, one_line
+from daof.filters.learned.config import FilterConfig
 
 __all__ = ["CONF_DIR", "FILTER_KINDS", "TrainConfig", "check_config", "compose_config", "register_configs"]
 
@@ -44,17 +46,18 @@ class Seeds:
 
 @dataclass
 class Network:
-    num_cells: int = 256  # hidden width of actor and critics (the paper: 3 x 256 GELU)
-    depth: int = 3
-    correction_sigmas: float = 4.0  # bound of an update: ± this · σ_t per state (DAOF-v1: σ_t = a UKF's √diag P⁺_t;
-    # incremental DAOF-v2: the std of the state's change per step in simulated data)
-    startup_input: bool = True  # closed-loop networks read ρ_t = max(0, 1 − (t−1)/50)
+    num_cells: int = FilterConfig.num_cells  # hidden width of actor and critics (the paper: 3 x 256 GELU)
+    depth: int = FilterConfig.depth
+    # bound of an update: ± this · σ_t per state (DAOF-v1: σ_t = a UKF's √diag P⁺_t; incremental
+    # DAOF-v2: the std of the state's change per step in simulated data)
+    correction_sigmas: float = FilterConfig.correction_sigmas
+    startup_input: bool = FilterConfig.startup_input  # closed-loop networks read ρ_t = max(0, 1 − (t−1)/50)
     critic_form: str = "mlp"  # mlp | quadratic (V(h) − Σ p_i(h)(a_i − m_i(h))²) | reward_quadratic (γ = 0)
     critic_scale: str = "window"  # the value distribution's σ from h | reward: the quadratic reward's own spread
     critic_init: str = "own"  # each critic keeps its own init | resampled: TorchRL's re-sampled copies
     window_init: str = "uniform"  # PyTorch's init | newest: older frames' first-layer weights start at 0
-    v2_action: str = "estimate"  # DAOF-v2: x̂ = π(h) (estimate) | x̂ = x̂_{t−1} + b_t·π(h) (increment)
-    missing_mask: bool = False  # SLF: frames carry a 0/1 missing flag per measurement channel
+    v2_action: str = FilterConfig.v2_action  # DAOF-v2: x̂ = π(h) (estimate) | x̂ = x̂_{t−1} + b_t·π(h) (increment)
+    missing_mask: bool = FilterConfig.missing_mask  # SLF: frames carry a 0/1 missing flag per measurement channel
 
 
 @dataclass
@@ -135,10 +138,10 @@ class TrainConfig:
     kind: str = MISSING  # DAOF-v1 | DAOF-v2 | SLF (set by the filter group: filter=daof_v1|daof_v2|slf)
     run_name: str = MISSING  # the run directory's stem (set by the filter group)
     system: str = MISSING  # a registered system name (set by the system group)
-    scenario: str = "nominal"
+    scenario: str = FilterConfig.scenario
     overrides: dict[str, Any] = field(default_factory=dict)  # system parameters; replay: a recorded episode bank
-    window: int = 20  # N of h_t^N
-    include_controls: bool = True  # frames carry (u_t, u_{t−1})
+    window: int = FilterConfig.window  # N of h_t^N
+    include_controls: bool = FilterConfig.include_controls  # frames carry (u_t, u_{t−1})
     seed: int = 1
     threads: int = 1  # torch threads (the MLPs are small: one thread per run is the efficient choice)
     resume: str | None = None  # a checkpoint.pt of the same run to continue
