@@ -7,6 +7,8 @@ import pytest
 import torch
 
 os.environ.setdefault("WANDB_MODE", "disabled")
+#: every figure the tests render must pass daof.evaluate.figures.layout_problems
+os.environ["DAOF_STRICT_FIGURES"] = "1"
 
 
 @pytest.fixture(autouse=True)

@@ -1,7 +1,16 @@
-"""The study's figures (PNG): one run's states and errors, per-run RMSE, learning curves, windows."""
+"""The study's figures (PNG): one run's states and errors, per-run RMSE, learning curves, windows, scenarios.
+
+Every figure is a grid of at most three panels a row with one legend below it (never on the data);
+every series keeps one colour and line style across the figures of a report (``series_styles``:
+model-based filters dashed, learned filters solid). ``_save`` checks each figure's layout
+(``layout_problems``) and warns, or raises where ``DAOF_STRICT_FIGURES=1`` (the test suite sets it).
+"""
 
 from __future__ import annotations
 
+import math
+import os
+import warnings
 from pathlib import Path
 
 import matplotlib
@@ -11,150 +20,286 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
 __all__ = [
+    "is_learned",
+    "layout_problems",
     "plot_one_run",
     "plot_one_run_state",
     "plot_per_run_boxes",
     "plot_learning_curves",
     "plot_scenario_rmse",
     "plot_window_study",
+    "series_styles",
 ]
 
+#: panels per row of a grid
+COLUMNS = 3
+#: a panel's size [in] and the saved figure's resolution
+PANEL = (4.4, 3.2)
+DPI = 110
+#: widest figure a page shows readably [px]
+MAX_WIDTH_PX = COLUMNS * PANEL[0] * DPI + 200
+#: names of learned filters start with one of these (the rest are model-based references)
+LEARNED_PREFIXES = ("DAOF", "SLF", "KalmanNet")
 
-def _thousands(x, _pos=None) -> str:
-    """Tick label for sample counts: 250000 -> 250k."""
-    return f"{x / 1000:g}k" if abs(x) >= 1000 else f"{x:g}"
+
+def is_learned(name: str) -> bool:
+    """Whether ``name`` is a learned filter's row (DAOF-v1, DAOF-v2 (N=5), SLF, KalmanNet, …)."""
+    return name.startswith(LEARNED_PREFIXES)
+
+
+#: filters with a fixed style in every report (others take the next free ones)
+KNOWN_SERIES = (
+    "EKF", "UKF", "PF", "PF-oracle", "PF-joint", "KF", "KF-stationary",
+    "SLF", "DAOF-v2", "DAOF-v1", "KalmanNet", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)",
+)  # fmt: skip
+
+
+def series_styles(names) -> dict[str, dict]:
+    """A distinct (colour, line style) per name, the same for a filter in every figure: tab20's
+    colours (the ten strong ones first), model-based filters dashed, learned ones solid.
+    A reference line's label "UKF (validation set)" takes the UKF's style."""
+    palette = plt.get_cmap("tab20").colors
+    order = sorted(range(20), key=lambda i: (i % 2, i))
+    styles, unknown = {}, 0
+    for name in dict.fromkeys(names):
+        base = name.removesuffix(" (validation set)")
+        if base in KNOWN_SERIES:
+            slot = KNOWN_SERIES.index(base)
+        else:
+            slot, unknown = len(KNOWN_SERIES) + unknown, unknown + 1
+        styles[name] = {"color": palette[order[slot % 20]], "ls": "-" if is_learned(base) else "--"}
+    return styles
+
+
+def _grid(panels: int, title: str, height: float = PANEL[1]):
+    """A figure of ``panels`` axes, at most ``COLUMNS`` a row, unused cells removed."""
+    cols = min(COLUMNS, panels)
+    rows = math.ceil(panels / cols)
+    size = (PANEL[0] * cols, height * rows + 0.9)
+    fig, axes = plt.subplots(rows, cols, figsize=size, squeeze=False, layout="constrained")
+    flat = list(axes.flat)
+    for ax in flat[panels:]:
+        ax.remove()
+    fig.suptitle(title)
+    return fig, flat[:panels]
+
+
+def _legend_below(fig, axes, ncol: int = 4) -> None:
+    """One legend for the figure, under its panels (entries gathered from every panel, once each)."""
+    entries = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    if entries:
+        fig.legend(entries.values(), entries.keys(), loc="outside lower center", ncol=min(ncol, len(entries)))
+
+
+def _count_label(x, _pos=None) -> str:
+    """Tick label for sample counts: 250000 -> 250k, 1600000 -> 1.6M."""
+    if abs(x) >= 1e6:
+        return f"{x / 1e6:g}M"
+    return f"{x / 1e3:g}k" if abs(x) >= 1e3 else f"{x:g}"
+
+
+def layout_problems(fig) -> list[str]:
+    """What makes ``fig`` hard to read: too wide, more than ``COLUMNS`` panels a row, a legend on a panel."""
+    fig.canvas.draw()
+    problems = []
+    width = fig.get_figwidth() * DPI
+    if width > MAX_WIDTH_PX:
+        problems.append(f"{width:.0f} px wide (at most {MAX_WIDTH_PX:.0f})")
+    rows: dict[float, int] = {}
+    for ax in fig.axes:
+        top = round(ax.get_position().y1, 3)
+        rows[top] = rows.get(top, 0) + 1
+    if rows and max(rows.values()) > COLUMNS:
+        problems.append(f"{max(rows.values())} panels in a row (at most {COLUMNS})")
+    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+    for legend in legends:
+        box = legend.get_window_extent()
+        for ax in fig.axes:
+            if box.overlaps(ax.get_window_extent()):
+                problems.append(f"a legend overlaps the panel '{ax.get_ylabel() or ax.get_title()}'")
+    return problems
 
 
 def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    problems = layout_problems(fig)
+    if problems:
+        message = f"{Path(path).name}: " + "; ".join(problems)
+        if os.environ.get("DAOF_STRICT_FIGURES") == "1":
+            plt.close(fig)
+            raise ValueError(message)
+        warnings.warn(message, stacklevel=3)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
 
 
-def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
-    """Estimated vs true state (top row) and error over time (bottom row), per state, all filters."""
-    s = study.system
-    names = names or list(study.estimates)
-    truth = study.data["state"][run]
-    t = torch.arange(1, truth.shape[0] + 1) * s.dt
-    fig, axes = plt.subplots(2, s.state_dim, figsize=(6 * s.state_dim, 6.5), sharex=True, squeeze=False)
-    for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
-        estimates = {name: study.estimates[name][run, :, j] for name in names}
-        _state_and_error_panels(axes[0, j], axes[1, j], t, truth[:, j], estimates, f"{state} [{unit}]")
-    axes[0, 0].legend(fontsize=7, ncol=2)
-    fig.suptitle(f"{s.name} ({s.scenario}), run {run}: estimates and errors")
-    return _save(fig, path)
+def _reference_name(names) -> str | None:
+    """The model-based filter the errors panel shows beside the learned ones (the oracle where there is one)."""
+    model_based = [n for n in names if not is_learned(n)]
+    for preferred in ("PF-oracle", "PF-joint", "KF"):
+        if preferred in model_based:
+            return preferred
+    return model_based[0] if model_based else None
 
 
-def _state_and_error_panels(top, bottom, t, truth, estimates: dict, label: str) -> None:
-    """One state: true and estimated trajectories (top), estimation errors over time (bottom)."""
-    top.plot(t, truth, color="black", lw=1.6, label="true")
-    for name, est in estimates.items():
-        top.plot(t, est, lw=0.9, label=name)
-        bottom.plot(t, est - truth, lw=0.8, label=name)
-    top.set_ylabel(label)
-    bottom.set_ylabel(f"error {label}")
-    bottom.set_xlabel("time [s]")
-    bottom.axhline(0, color="black", lw=0.6)
-    for ax in (top, bottom):
+def _state_row(axes, t, truth, estimates: dict, styles: dict, label: str) -> None:
+    """One state in up to three panels: model-based estimates, learned estimates, errors (learned + reference)."""
+    groups = {
+        "model-based filters": {n: e for n, e in estimates.items() if not is_learned(n)},
+        "learned filters": {n: e for n, e in estimates.items() if is_learned(n)},
+    }
+    groups = {title: group for title, group in groups.items() if group}
+    reference = _reference_name(estimates)
+    shown_errors = {n: e for n, e in estimates.items() if is_learned(n) or n == reference}
+    for ax, (title, group) in zip(axes, groups.items()):
+        ax.plot(t, truth, color="black", lw=1.4, label="true state")
+        for name, est in group.items():
+            ax.plot(t, est, lw=0.9, label=name, color=styles[name]["color"], ls=styles[name]["ls"])
+        ax.set_title(title, fontsize=9)
+        ax.set_ylabel(label)
+    err = axes[len(groups)]
+    for name, est in shown_errors.items():
+        err.plot(t, est - truth, lw=0.8, label=name, color=styles[name]["color"], ls=styles[name]["ls"])
+    err.axhline(0, color="black", lw=0.6)
+    err.set_title("estimation error", fontsize=9)
+    err.set_ylabel(f"error {label}")
+    for ax in axes:
+        ax.set_xlabel("time [s]")
         ax.grid(alpha=0.3)
 
 
-def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, units=None) -> Path:
-    """State ``j`` of one run: estimated vs true (top) and error over time (bottom), all filters."""
+def _study_rows(names) -> list[str]:
+    """The study's rows without the window study's extra ones ("DAOF-v1 (N=5)")."""
+    return [n for n in names if "(N=" not in n]
+
+
+def _panels_per_state(names) -> int:
+    return int(any(not is_learned(n) for n in names)) + int(any(is_learned(n) for n in names)) + 1
+
+
+def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
+    """One run, a row per state: model-based and learned estimates against the truth, and the errors."""
     s = study.system
-    names = names or list(study.estimates)
+    names = names or _study_rows(study.estimates)
+    styles = series_styles(names)
+    truth = study.data["state"][run]
+    t = torch.arange(1, truth.shape[0] + 1) * s.dt
+    per_state = _panels_per_state(names)
+    fig, axes = _grid(per_state * s.state_dim, f"{s.name} ({s.scenario}), run {run}: estimates and errors")
+    for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
+        estimates = {name: study.estimates[name][run, :, j] for name in names}
+        row = axes[j * per_state : (j + 1) * per_state]
+        _state_row(row, t, truth[:, j], estimates, styles, f"{state} [{unit}]")
+    _legend_below(fig, axes)
+    return _save(fig, path)
+
+
+def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, units=None) -> Path:
+    """State ``j`` of one run: model-based and learned estimates against the truth, and the errors."""
+    s = study.system
+    names = names or _study_rows(study.estimates)
     state, unit = s.state_names[j], (units or s.state_units)[j]
     truth = study.data["state"][run, :, j]
     t = torch.arange(1, truth.shape[0] + 1) * s.dt
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    fig, axes = _grid(_panels_per_state(names), f"{s.name} ({s.scenario}), run {run}: {state}")
     estimates = {name: study.estimates[name][run, :, j] for name in names}
-    _state_and_error_panels(top, bottom, t, truth, estimates, f"{state} [{unit}]")
-    top.legend(fontsize=7, ncol=3)
-    fig.suptitle(f"{s.name} ({s.scenario}), run {run}: {state}, estimates and errors")
+    _state_row(axes, t, truth, estimates, series_styles(names), f"{state} [{unit}]")
+    _legend_below(fig, axes)
     return _save(fig, path)
 
 
 def plot_per_run_boxes(study, path: Path, names=None, units=None) -> Path:
-    """Box plot of per-run RMSE, one panel per state (log scale)."""
+    """Per-run RMSE of every filter, one panel per state (log scale: runs spread over decades)."""
     s = study.system
     names = names or list(study.results)
-    fig, axes = plt.subplots(1, s.state_dim, figsize=(max(6, 1.1 * len(names)) * s.state_dim / 1.4, 4), squeeze=False)
-    for j, (state, unit) in enumerate(zip(s.state_names, units or s.state_units)):
-        ax = axes[0, j]
+    styles = series_styles(names)
+    fig, axes = _grid(s.state_dim, f"{s.name} ({s.scenario}): per-run RMSE over {study.runs} runs", height=3.6)
+    for ax, state, unit, j in zip(axes, s.state_names, units or s.state_units, range(s.state_dim)):
         values = [[row[j] for row in study.results[n].per_run_rmse] for n in names]
-        ax.boxplot(values, showfliers=True)
-        ax.set_xticks(range(1, len(names) + 1), names, rotation=35, ha="right", fontsize=8)
+        boxes = ax.boxplot(values, showfliers=True, patch_artist=True, widths=0.6)
+        for box, name in zip(boxes["boxes"], names):
+            box.set(facecolor=styles[name]["color"], alpha=0.55)
+        ax.set_xticks(range(1, len(names) + 1), names, rotation=40, ha="right", fontsize=7)
         ax.set_yscale("log")
         ax.set_ylabel(f"per-run RMSE {state} [{unit}]")
         ax.grid(alpha=0.3, axis="y")
-    fig.suptitle(f"{s.name} ({s.scenario}): per-run RMSE over {study.runs} runs")
     return _save(fig, path)
 
 
-def plot_learning_curves(curves: dict[str, list[dict]], state_names, path: Path, references=None, units=None) -> Path:
-    """Validation RMSE per state against training samples / env steps for every learned filter."""
-    fig, axes = plt.subplots(1, len(state_names), figsize=(5.5 * len(state_names), 3.8), squeeze=False)
-    for j, state in enumerate(state_names):
-        ax = axes[0, j]
+def plot_learning_curves(
+    curves: dict[str, list[dict]], state_names, path: Path, references=None, units=None, title=None
+) -> Path:
+    """Validation RMSE per state against training samples for every learned filter, references dashed."""
+    styles = series_styles([*curves, *(references or {})])
+    fig, axes = _grid(len(state_names), title or "learning curves (validation set)")
+    for j, (ax, state) in enumerate(zip(axes, state_names)):
         for name, history in curves.items():
             if history:
-                ax.plot([h["frames"] for h in history], [h[f"rmse_{state}"] for h in history], marker=".", label=name)
-        ax.set_yscale("log")
-        ax.set_xscale("symlog", linthresh=1e4)
-        ax.set_xlim(left=0)  # training samples are never negative (symlog's autoscale pads below 0)
+                xs = [h["frames"] for h in history]
+                ax.plot(xs, [h[f"rmse_{state}"] for h in history], marker=".", label=name, color=styles[name]["color"])
         for label, values in (references or {}).items():
-            ax.axhline(values[j], ls="--", lw=0.9, color="gray")
-            ax.text(0, values[j], f" {label}", fontsize=7, color="gray", va="bottom")
-        ax.xaxis.set_major_formatter(_thousands)
+            ax.axhline(values[j], lw=1.0, label=label, color=styles[label]["color"], ls=styles[label]["ls"])
+        ax.set_yscale("log")
+        ax.set_xlim(left=0)
+        ax.xaxis.set_major_formatter(_count_label)
         ax.set_xlabel("training samples (env steps)")
         ax.set_ylabel(f"validation RMSE {state}" + (f" [{units[j]}]" if units else ""))
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    fig.suptitle("learning curves (validation set)")
+    _legend_below(fig, axes)
     return _save(fig, path)
 
 
-def plot_window_study(rows: list[dict], state_names, path: Path) -> Path:
-    """RMSE per state and cost per estimate against the window length N."""
+def plot_window_study(rows: list[dict], state_names, path: Path, units=None) -> Path:
+    """Per window N: each state's RMSE, as a ratio to the paired reference with its interval where
+    the rows carry one (``ratio``, ``low``, ``high`` from ``paired_comparison``), and the cost per estimate."""
     windows = [r["window"] for r in rows]
-    fig, axes = plt.subplots(1, len(state_names) + 1, figsize=(4.5 * (len(state_names) + 1), 3.6), squeeze=False)
-    for j, state in enumerate(state_names):
-        axes[0, j].plot(windows, [r["rmse"][j] for r in rows], marker="o")
-        axes[0, j].set_ylabel(f"RMSE {state}")
-    costs = [r["cost_ms"] for r in rows]
-    axes[0, -1].plot(windows, costs, marker="o", color="C3")
-    axes[0, -1].set_ylabel("cost per estimate [ms]")
-    for ax in axes[0]:
+    paired = all("ratio" in r for r in rows)
+    reference = rows[0].get("reference") if paired else None
+    fig, axes = _grid(len(state_names) + 1, "sliding-window study")
+    for j, (ax, state) in enumerate(zip(axes, state_names)):
+        if paired:
+            mid = [r["ratio"][j] for r in rows]
+            err = [[m - r["low"][j] for m, r in zip(mid, rows)], [r["high"][j] - m for m, r in zip(mid, rows)]]
+            ax.errorbar(windows, mid, yerr=err, marker="o", capsize=4, label="ratio, 95 % paired interval")
+            ax.axhline(1.0, color="black", lw=0.8, ls="--", label=f"{reference} (= 1)")
+            ax.set_ylabel(f"RMSE {state} / {reference}")
+        else:
+            ax.plot(windows, [r["rmse"][j] for r in rows], marker="o", label="RMSE")
+            ax.set_ylabel(f"RMSE {state}" + (f" [{units[j]}]" if units else ""))
+    axes[-1].plot(windows, [r["cost_ms"] for r in rows], marker="o", color="tab:red", label="cost per estimate")
+    axes[-1].set_ylabel("cost per estimate [ms]")
+    for ax in axes:
         ax.set_xlabel("window N")
-        ax.set_xticks(windows)
+        ax.set_xscale("log")
+        ax.set_xticks(windows, [str(n) for n in windows])
+        ax.minorticks_off()
         ax.grid(alpha=0.3)
-    fig.suptitle("sliding-window study (DAOF-v1)")
+    _legend_below(fig, axes)
     return _save(fig, path)
 
 
 def plot_scenario_rmse(rmse: dict[str, dict[str, list[float]]], state_names, units, path: Path) -> Path:
-    """RMSE per state as grouped bars: one group per scenario, one bar per filter (log scale).
+    """RMSE per state as grouped bars from zero: one group per scenario, one bar per filter.
 
     ``rmse``: scenario -> filter -> RMSE per state.
     """
     scenarios = list(rmse)
     names = list(dict.fromkeys(n for rows in rmse.values() for n in rows))
+    styles = series_styles(names)
     width = 0.8 / max(len(names), 1)
-    fig, axes = plt.subplots(
-        1, len(state_names), figsize=(max(6, 1.8 * len(scenarios) + 2) * len(state_names) / 1.3, 4), squeeze=False
-    )
-    for j, (state, unit) in enumerate(zip(state_names, units)):
-        ax = axes[0, j]
+    fig, axes = _grid(len(state_names), "RMSE per scenario")
+    for j, (ax, state, unit) in enumerate(zip(axes, state_names, units)):
         for k, name in enumerate(names):
             xs = [i + (k - (len(names) - 1) / 2) * width for i, sc in enumerate(scenarios) if name in rmse[sc]]
             ys = [rmse[sc][name][j] for sc in scenarios if name in rmse[sc]]
-            ax.bar(xs, ys, width, label=name)
+            hatch = None if is_learned(name) else "//"
+            ax.bar(xs, ys, width, label=name, color=styles[name]["color"], hatch=hatch, edgecolor="white", lw=0)
         ax.set_xticks(range(len(scenarios)), scenarios)
-        ax.set_yscale("log")
+        ax.set_ylim(bottom=0)
         ax.set_ylabel(f"RMSE {state} [{unit}]")
         ax.grid(alpha=0.3, axis="y")
-    axes[0, -1].legend(fontsize=7, bbox_to_anchor=(1.02, 1.0), loc="upper left")  # outside: bars stay visible
-    fig.suptitle("RMSE per scenario")
+    _legend_below(fig, axes)
     return _save(fig, path)

@@ -123,7 +123,8 @@ class Training:
 
 @dataclass
 class WindowStudy:
-    """One learned filter at several input windows N: ``{"window", "rmse", "cost_ms"}`` per N."""
+    """One learned filter at several input windows N: ``{"window", "name", "rmse", "cost_ms"}`` per N
+    (``name``: the study's row of that N)."""
 
     filter: str
     rows: list[dict]
@@ -374,7 +375,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
         payload["paired_with"] = {"reference": layout.paired_with, "filters": paired}
     (out / "results.json").write_text(json.dumps(payload, indent=2))
     _write_csv(study, out / "results.csv", units if scale is not None else None)
-    figs = _figures(study, out, spec, units, scale)
+    figs = _figures(study, out, spec, units, scale, paired)
 
     paper = PAPER_TABLES[layout.paper_table] if layout.paper_table else None
     lines = _header_lines(title, profile) + _system_lines(study)
@@ -408,7 +409,7 @@ def _write_csv(study, path: Path, units) -> None:
             writer.writerow([name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs])
 
 
-def _figures(study, out: Path, spec: ReportSpec, units, scale) -> dict[str, Path]:
+def _figures(study, out: Path, spec: ReportSpec, units, scale, paired: dict | None = None) -> dict[str, Path]:
     """The report's figures (caption -> file): one run, per-run RMSE, learning curves, window study."""
     s = study.system
     if spec.layout.per_state:
@@ -436,7 +437,10 @@ def _figures(study, out: Path, spec: ReportSpec, units, scale) -> dict[str, Path
         )
     if spec.window_study:
         rows = spec.window_study.rows
-        figs["window study"] = figures.plot_window_study(rows, s.state_names, out / "window_study.png")
+        if paired and all(r.get("name") in paired for r in rows):  # the ratios with their intervals
+            reference = spec.layout.paired_with
+            rows = [{**r, **paired[r["name"]], "reference": reference} for r in rows]
+        figs["window study"] = figures.plot_window_study(rows, s.state_names, out / "window_study.png", units)
     return figs
 
 

@@ -356,7 +356,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         study_rows = WindowStudy(
             row,
             [
-                {"window": n, "rmse": study.results[name].rmse, "cost_ms": study.results[name].cost_ms}
+                {"window": n, "name": name, "rmse": study.results[name].rmse, "cost_ms": study.results[name].cost_ms}
                 for n, name in names.items()
             ],
         )

@@ -309,7 +309,10 @@ class FilterTrainer:
         cfg = self.cfg
         title = f"{self.filter.config.kind} on {cfg.system} ({cfg.scenario}), N={cfg.window}"
         references = self.reference_rmse()
-        plot_learning_curve(self.history, self.system.state_names, self.out / "learning_curve.png", title, references)
+        curve = self.out / "learning_curve.png"
+        plot_learning_curve(
+            self.history, self.system.state_names, curve, title, references, name=self.filter.config.kind
+        )
         summary = {
             "kind": self.filter.config.kind,
             "system": cfg.system,

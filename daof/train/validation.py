@@ -10,11 +10,6 @@ import torch
 __all__ = ["rmse_per_state", "write_curve_csv", "plot_learning_curve"]
 
 
-def _thousands(x, _pos=None) -> str:
-    """Tick label for sample counts: 250000 -> 250k."""
-    return f"{x / 1000:g}k" if abs(x) >= 1000 else f"{x:g}"
-
-
 def rmse_per_state(estimates: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """Pooled RMSE per state over runs and steps: sqrt(mean((x̂ − x)²)) -> [state_dim]."""
     if estimates.shape != truth.shape:
@@ -34,29 +29,10 @@ def write_curve_csv(history: list[dict], path: str | Path) -> None:
 
 
 def plot_learning_curve(
-    history: list[dict], state_names, path: str | Path, title: str, references: dict | None = None
+    history: list[dict], state_names, path: str | Path, title: str, references: dict | None = None, *, name: str
 ) -> None:
-    """Validation RMSE per state against environment steps (one panel per state)."""
-    import matplotlib
+    """Validation RMSE per state of filter ``name`` against environment steps (``daof.evaluate.figures``)."""
+    from daof.evaluate.figures import plot_learning_curves
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    if not history:
-        return
-    frames = [h["frames"] for h in history]
-    fig, axes = plt.subplots(1, len(state_names), figsize=(4.5 * len(state_names), 3.4), squeeze=False)
-    for i, (ax, name) in enumerate(zip(axes[0], state_names)):
-        ax.plot(frames, [h[f"rmse_{name}"] for h in history], marker=".", label="validation")
-        for label, values in (references or {}).items():
-            ax.axhline(values[i], ls="--", lw=1, color="gray")
-            ax.annotate(label, (frames[0], values[i]), fontsize=7, color="gray", va="bottom")
-        ax.set_yscale("log")
-        ax.xaxis.set_major_formatter(_thousands)
-        ax.set_xlabel("environment steps")
-        ax.set_ylabel(f"RMSE {name}")
-        ax.grid(alpha=0.3)
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    if history:
+        plot_learning_curves({name: history}, state_names, Path(path), references, title=title)
