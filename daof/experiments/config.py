@@ -53,6 +53,8 @@ EXPERIMENT_DIR = TRAIN_CONF_DIR / "experiment"
 #: the classes of daof.filters an experiment may name as classical filters (particle filters need a count)
 CLASSICAL_FILTERS = ("EKF", "UKF", "KalmanFilter", "StationaryKalmanFilter", "ParticleFilter", "JointParameterPF")
 PARTICLE_FILTERS = ("ParticleFilter", "JointParameterPF")
+#: what ``logger=`` may name ("" logs nothing beyond the trainings' CSV files)
+LOGGERS = ("", "wandb")
 
 
 @dataclass
@@ -132,6 +134,7 @@ class ExperimentConfig:
     window: int = 20  # N of every learned row (the window study's row also at the profile's windows)
     parallel_jobs: int = 2  # trainings run as subprocesses, one torch thread each
     timing_threads: int = 1  # torch threads while timing cost per estimate
+    logger: str = ""  # wandb: every training and the report log an (offline) wandb run; "" none (docs/experiments.md)
     learned: dict[str, LearnedRow] = field(default_factory=dict)  # report row -> its training, in report order
     training_overrides: list[str] = field(default_factory=list)  # overrides of every training
     window_study: str | None = None  # a learned row trained again at every N of the profile's windows
@@ -240,6 +243,8 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
         _at_least(getattr(p, key), 1, f"{where}.{key}")
     for key in ("window", "parallel_jobs", "timing_threads"):
         _at_least(getattr(cfg, key), 1, key)
+    if cfg.logger not in LOGGERS:
+        raise ValueError(f"logger must be one of {list(LOGGERS)}, got {cfg.logger!r}")
 
     scenarios = cfg.scenarios
     if not scenarios:

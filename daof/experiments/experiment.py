@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from daof.dashboard import log_report
 from daof.evaluate import Dropout, run_study
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import (
@@ -104,6 +105,8 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
     root = Path(cfg.output_root)
     common = [f"system={cfg.system}", f"scenario={cfg.scenario}", f"seed={cfg.training_seed}"]
     extra = [*cfg.training_overrides, *(f"overrides.{k}={v}" for k, v in p.system.items())]
+    if cfg.logger:  # logger keys never make a finished run stale (daof.train.base.RESUMABLE_CHANGES)
+        extra += [f"logger.backend={cfg.logger}", f"logger.group={_group(cfg)}", f"logger.tags=[{cfg.profile}]"]
     rows = []
     for name in cfg.learned:
         rows.append((name, name, cfg.window))
@@ -118,6 +121,11 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
         jobs[name] = TrainingJob(name + label, out, int(p.frames[row_name]), overrides)
         windows[name] = n
     return jobs, windows
+
+
+def _group(cfg: ExperimentConfig) -> str:
+    """The wandb group of an experiment's runs: its system and profile."""
+    return f"{cfg.system}-{cfg.profile}"
 
 
 def study_system(cfg: ExperimentConfig, p: Profile):
@@ -375,6 +383,16 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         },
     )
     report = write_report(study, Path(cfg.report_dir), title=title, profile=cfg.profile, spec=spec)
+    if cfg.logger == "wandb":
+        run_dir = log_report(
+            Path(cfg.report_dir),
+            name=f"report {cfg.system}/{cfg.scenario} {cfg.profile}",
+            group=_group(cfg),
+            tags=[cfg.system, cfg.scenario, cfg.profile, "report"],
+            project="daof",
+            mode="offline",
+        )
+        print(f"wandb run of the report: {run_dir}")
     for check in checks:
         print(f"{check.requirement}: {'met' if check.met else 'NOT met'} ({check.detail})")
     return study, report

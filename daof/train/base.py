@@ -20,6 +20,7 @@ from torchrl._utils import timeit
 from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
+from daof.dashboard import log_training_end, training_identity
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
@@ -37,7 +38,7 @@ RUN_FILES = (RUN_CONFIG, "best.pt", "final.pt", "checkpoint.pt", "summary.json",
 #: config keys a run may change when it is resumed
 RESUMABLE_CHANGES = (
     "resume", "output_dir", "threads", "collector.total_frames", "checkpoint.every_frames",
-    "logger.backend", "logger.mode",
+    "logger.backend", "logger.mode", "logger.project", "logger.name", "logger.group", "logger.tags",
 )  # fmt: skip
 
 
@@ -268,11 +269,16 @@ class FilterTrainer:
         lc = self.cfg.logger
         if lc.backend:
             kwargs = {}
+            name = self.out.name
             if lc.backend == "wandb":
-                kwargs["wandb_kwargs"] = {"mode": lc.mode, "project": lc.project, "dir": str(self.out)}
-            self.logger = get_logger(
-                lc.backend, str(self.out / "logs"), self.out.name, state_dict=self._logger_state, **kwargs
-            )
+                identity = training_identity(self.cfg)
+                name = identity.pop("name")
+                config = OmegaConf.to_container(self.cfg, resolve=True)
+                kwargs["wandb_kwargs"] = {
+                    **{"mode": lc.mode, "project": lc.project, "dir": str(self.out), "config": config},
+                    **identity,
+                }
+            self.logger = get_logger(lc.backend, str(self.out / "logs"), name, state_dict=self._logger_state, **kwargs)
         self._clock_start = time.perf_counter() - self.wall
         desc = f"{self.filter.config.kind} {self.cfg.system} N={self.cfg.window}"
         return tqdm(total=total, initial=self.frames, desc=desc, unit="fr", mininterval=2.0)
@@ -328,5 +334,7 @@ class FilterTrainer:
             "timing_s": {k: v for k, v in timeit.todict().items()},
         }
         atomic_write_text(self.out / "summary.json", json.dumps(summary, indent=2, default=str))
+        if cfg.logger.backend == "wandb" and self.logger is not None:
+            log_training_end(self.logger, self.history, self.system.state_names, curve, summary)
         self._release_directory()
         return summary

@@ -45,9 +45,6 @@ def restore_rng(state: dict, extra_generators: dict[str, torch.Generator] | None
         gen.set_state(state[f"gen:{gen_name}"])
 
 
-
-
-
 def load_checkpoint(path: str | Path) -> dict:
     """Load a training checkpoint (``safe_load``), with one clear error if it is missing or not one."""
     path = Path(path)

@@ -131,6 +131,9 @@ class Logger:
     backend: str = "csv"  # csv | wandb | "" (none)
     mode: str = "offline"  # wandb mode: offline runs can be uploaded later with `wandb sync`
     project: str = "daof"
+    name: str | None = None  # wandb run name (null: "<kind> <system>/<scenario> N=<window> seed=<seed>")
+    group: str | None = None  # wandb group (an experiment sets "<experiment>/<profile>")
+    tags: list[str] = field(default_factory=list)  # wandb tags beside kind, system, scenario, N and seed
 
 
 @dataclass
@@ -172,6 +175,7 @@ CHOICES = {
     "reward.baseline": ("none", "zero_action"),
     "validation.actor": ("online", "target"),
     "logger.backend": ("csv", "wandb", ""),
+    "logger.mode": ("offline", "online", "disabled"),
 }
 
 #: keys that must be ≥ 1 (counts) or > 0 (sizes and rates)

@@ -16,6 +16,7 @@ from daof.io import safe_load
 
 __all__ = ["load_filter"]
 
+
 def _filter_config(fields: dict, path: Path) -> FilterConfig:
     """A stored filter config; one written before options were retired loads if it holds their surviving values."""
     try:
