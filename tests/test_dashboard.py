@@ -101,3 +101,21 @@ def test_a_report_run_logs_the_results_table_and_figures(tmp_path, monkeypatch):
     assert content["columns"][:3] == ["filter", "rmse_beta", "rmse_r"] and content["data"][0][0] == "UKF"
     assert list((run / "files" / "media" / "images").glob("figures/per_run_rmse_box_*.png"))
     assert not (report / "wandb").exists()  # the report directory holds the report only
+
+
+def test_the_experiment_switch_logs_every_training_without_making_finished_runs_stale(tmp_path):
+    from daof.experiments.experiment import plan_experiment
+
+    def jobs(*extra):
+        plan = plan_experiment("veh2dof", ["profile=tiny", f"root={tmp_path}", *extra])
+        return next(iter(plan.scenarios.values())).jobs
+
+    plain, logged = jobs(), jobs("logger=wandb")
+    job = logged["DAOF-v1"]
+    assert {"logger.backend=wandb", "logger.group=veh2dof-tiny", "logger.tags=[tiny]"} <= set(job.overrides)
+    finished = plain["DAOF-v1"]
+    finished.output_dir.mkdir(parents=True)
+    (finished.output_dir / "run_config.json").write_text(json.dumps(finished.requested_config))
+    assert job.output_dir == finished.output_dir and job.config_matches()
+    with pytest.raises(ValueError, match="logger must be one of"):
+        jobs("logger=tensorboard")
