@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
+from tqdm import tqdm
 
-from daof.train.base import RUN_CONFIG, comparable_config
+from daof.train.base import PROGRESS, RUN_CONFIG, comparable_config
 from daof.train.config import compose_config
 
 __all__ = ["TrainingJob", "run_jobs"]
@@ -103,14 +104,49 @@ class TrainingJob:
         return json.loads(self.summary_path.read_text())
 
 
-def _last_progress(log: Path) -> str:
+def _count(n: float) -> str:
+    return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k" if n >= 1e3 else f"{n:g}"
+
+
+def progress_line(job: TrainingJob) -> str:
+    """Where a running training is: frames of its budget, wall time, ETA, latest validation RMSE."""
     try:
-        tail = log.read_bytes()[-4000:].decode(errors="replace")
-    except OSError:
-        return ""
-    pieces = [p.strip() for p in tail.replace("\r", "\n").split("\n") if p.strip()]
-    bars = [p for p in pieces if "fr/s" in p or "fr]" in p or "%|" in p]
-    return (bars or pieces or ["starting"])[-1][:160]
+        p = json.loads((job.output_dir / PROGRESS).read_text())
+    except (OSError, ValueError):
+        return "starting"
+    frames, total, wall = p["frames"], max(int(p["total"]), 1), float(p["wall_s"])
+    line = f"{_count(frames)}/{_count(total)} frames ({100 * frames / total:.0f} %), {wall / 60:.1f} min"
+    if 0 < frames < total:
+        line += f", ETA {wall / frames * (total - frames) / 60:.1f} min"
+    if p.get("rmse"):
+        line += ", validation RMSE " + " ".join(f"{k} {v:.4g}" for k, v in p["rmse"].items())
+    return line
+
+
+class _Status:
+    """One live line per running job on a terminal; elsewhere a status line per job every ``every`` s."""
+
+    def __init__(self, log, every: float):
+        self.log, self.every, self.last = log, every, time.monotonic()
+        self.live = sys.stdout.isatty()
+        self.bars: dict[str, tqdm] = {}
+
+    def show(self, running: list[TrainingJob]) -> None:
+        if self.live:
+            for name in [n for n in self.bars if n not in {j.name for j in running}]:
+                self.bars.pop(name).close()
+            for job in running:
+                if job.name not in self.bars:
+                    self.bars[job.name] = tqdm(total=0, bar_format="{desc}", position=len(self.bars))
+                self.bars[job.name].set_description_str(f"  {job.name}: {progress_line(job)}")
+        elif running and time.monotonic() - self.last > self.every:
+            self.last = time.monotonic()
+            for job in running:
+                self.log(f"  {job.name}: {progress_line(job)}")
+
+    def close(self) -> None:
+        for bar in self.bars.values():
+            bar.close()
 
 
 def _stop(running) -> None:
@@ -126,8 +162,9 @@ def _stop(running) -> None:
         fh.close()
 
 
-def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every: float = 60.0) -> None:
-    """Run the unfinished jobs, ``parallel`` at a time; raise if any of them fails.
+def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every: float = 300.0) -> None:
+    """Run the unfinished jobs, ``parallel`` at a time; raise if any of them fails. Progress: one live
+    line per running job on a terminal, else a line per job every ``status_every`` seconds.
 
     Whatever ends this function early (an error, Ctrl-C, SIGTERM) stops the trainings it started.
     """
@@ -143,7 +180,7 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
         pending.append(job)
     running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
     failed = []
-    last_status = time.monotonic()
+    status = _Status(log, status_every)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     main_thread = threading.current_thread() is threading.main_thread()  # signal handlers live there only
     previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM")) if main_thread else None
@@ -171,11 +208,9 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
                     failed.append(job.name)
                     why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but no summary or best.pt"
                     log(f"  {job.name}: FAILED ({why}); see {log_path}")
-            if running and time.monotonic() - last_status > status_every:
-                last_status = time.monotonic()
-                for job, _, log_path, _ in running:
-                    log(f"  {job.name}: {_last_progress(log_path)}")
+            status.show([job for job, *_ in running])
     finally:
+        status.close()
         _stop(running)
         if main_thread:
             signal.signal(signal.SIGTERM, previous)

@@ -29,7 +29,10 @@ from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_che
 from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
 
-__all__ = ["RUN_CONFIG", "FilterTrainer", "comparable_config"]
+__all__ = ["PROGRESS", "RUN_CONFIG", "FilterTrainer", "comparable_config"]
+
+#: a running training's progress file (``FilterTrainer._write_progress``), read by ``daof.experiments``
+PROGRESS = "progress.json"
 
 
 #: the files a training run writes into its directory
@@ -87,6 +90,7 @@ class FilterTrainer:
         #: the best filter's weights and metadata, kept in the checkpoint so that ``best.pt`` matches it on resume
         self._best_filter: dict | None = None
         self.logger = None
+        self._progress_written = -math.inf
         self._logger_state = None
         self._clock_start = None
         self._next_ckpt = int(cfg.checkpoint.every_frames)
@@ -302,9 +306,25 @@ class FilterTrainer:
             for key, value in log.items():
                 self.logger.log_scalar(key, value, step=self.frames)
         bar.update(new_frames)
+        self._write_progress(total)
         if self.frames >= self._next_ckpt or self.frames >= total:
             self.save_checkpoint()
             self._next_ckpt = self.frames + int(self.cfg.checkpoint.every_frames)
+
+    def _write_progress(self, total: int, every_s: float = 5.0) -> None:
+        """``progress.json`` (frames, budget, wall time, latest validation RMSE) for whoever watches the run."""
+        now = time.monotonic()
+        if now - self._progress_written < every_s and self.frames < total:
+            return
+        self._progress_written = now
+        latest = self.history[-1] if self.history else {}
+        progress = {
+            "frames": self.frames,
+            "total": total,
+            "wall_s": round(self.wall, 1),
+            "rmse": {k[5:]: v for k, v in latest.items() if k.startswith("rmse_")},
+        }
+        atomic_write_text(self.out / PROGRESS, json.dumps(progress))
 
     def finish(self) -> dict:
         """Final filter, learning curve (CSV + PNG) and ``summary.json``."""
