@@ -67,7 +67,7 @@ class FilterCritic(nn.Module):
     spread at a = m (m and p detached: they are fitted by the mean). DSAC-T weights each sample's
     mean term by 1/(σ² + ε), so with ε small against σ² the fit of m(h) is the efficient weighted
     least squares: far-explored actions, whose rewards are the noisiest, count less
-    (``benchmarks/reward_vs_label.py``). ``scale="window"`` is σ = softplus(raw) from h alone.
+    (``diagnostics/reward_vs_label.py``). ``scale="window"`` is σ = softplus(raw) from h alone.
     """
 
     def __init__(

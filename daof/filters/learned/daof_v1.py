@@ -24,7 +24,7 @@ class DAOFv1(UpdateFilter):
 
     kind = "DAOF-v1"
     # reading the prediction beats holding the last value on every gap pattern measured
-    # (benchmarks/missing_data.py, docs/missing_data.md); the others have no model to predict with
+    # (diagnostics/missing_data.py, docs/missing_data.md); the others have no model to predict with
     missing_fills = ("prediction", "hold")
 
     @classmethod

@@ -1,6 +1,6 @@
 """How a trained DAOF-v1 makes its first update, beside a UKF's, on fresh runs of the system.
 
-    .venv/bin/python benchmarks/first_update.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python diagnostics/first_update.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
 
 At step 1 every filter starts from the prior mean, so the update x̂_1 − f(x̂_0, u_0) of the learned
 filter and the UKF's can be compared run by run (200 runs, seed 9100). Per state: the std of each

@@ -1,6 +1,6 @@
 """Learned filters under sensor dropout: what a missing measurement should read as (docs/missing_data.md).
 
-    .venv/bin/python benchmarks/missing_data.py runs/veh2dof/nominal/daof-v1-N20-s1/best.pt [more/best.pt ...]
+    .venv/bin/python diagnostics/missing_data.py runs/veh2dof/nominal/daof-v1-N20-s1/best.pt [more/best.pt ...]
 
 Trained filters (DAOF-v1, DAOF-v2 or SLF checkpoints on veh2dof) filter fresh runs (seed 9300,
 disjoint from training, validation and evaluation seeds) under several gap patterns. A DAOF-v1

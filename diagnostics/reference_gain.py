@@ -1,6 +1,6 @@
 """How good is DAOF-v1's reference update alone? The mean-gain filter against a UKF, same data.
 
-    .venv/bin/python benchmarks/reference_gain.py --system veh2dof
+    .venv/bin/python diagnostics/reference_gain.py --system veh2dof
 
 DAOF-v1 estimates x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t),
 K̄_t a UKF's mean Kalman gain at step t over 16 simulated runs (the schedule a training run builds).

@@ -1,8 +1,8 @@
 """RMSE of trained filters beside a reference, split into the start-up and the rest of each run.
 
-    .venv/bin/python benchmarks/rmse_over_time.py --system linear runs/linear/nominal/daof-v1-N20-s1/best.pt
-    .venv/bin/python benchmarks/rmse_over_time.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
-    .venv/bin/python benchmarks/rmse_over_time.py --system veh14dof runs/experiment2/paper/nominal/*/best.pt
+    .venv/bin/python diagnostics/rmse_over_time.py --system linear runs/linear/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python diagnostics/rmse_over_time.py --system veh2dof runs/veh2dof/nominal/daof-v1-N20-s1/best.pt
+    .venv/bin/python diagnostics/rmse_over_time.py --system veh14dof runs/experiment2/paper/nominal/*/best.pt
 
 Data: the training runs' validation set (20 runs × 500 steps, seed 9100; ``--runs``/``--seed``
 for other data). References: the Kalman filter on ``linear``; UKF and a 1000-particle PF on

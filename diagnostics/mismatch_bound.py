@@ -1,6 +1,6 @@
 """How much room does `mismatch` leave a model-free filter? A PF told each run's true μ and B.
 
-    .venv/bin/python benchmarks/mismatch_bound.py \
+    .venv/bin/python diagnostics/mismatch_bound.py \
         --study runs/experiment1/paper/mismatch/study --figure docs/results/experiment1-mismatch/rmse_vs_mu.png
 
 In the `mismatch` scenario every run has its own road friction μ ~ U[0.7, 1.0] and tyre shape

@@ -1,6 +1,6 @@
 """Where a trained DAOF's critic puts the best update at step t, beside its actor's (and a UKF's).
 
-    .venv/bin/python benchmarks/critic_check.py runs/linear_check/paper/nominal/daof-v1-N20 --step 1
+    .venv/bin/python diagnostics/critic_check.py runs/linear_check/paper/nominal/daof-v1-N20 --step 1
 
 The DAOF of a run that acts by updates (DAOF-v1, or DAOF-v2 in the increment form; its last
 ``checkpoint.pt``: actor, both critics) meets the step-t states of its own training env

@@ -1,6 +1,6 @@
 """How many more samples does learning an estimate from the reward need than learning it from the label?
 
-    .venv/bin/python benchmarks/reward_vs_label.py
+    .venv/bin/python diagnostics/reward_vs_label.py
 
 At γ = 0 DAOF's critic of the reward's own curvature (``network.critic_form=reward_quadratic``)
 fits μ(h, a) = V(h) − c(a − m(h))² to rewards r = −c(a − x)², a drawn around m by exploration, and

@@ -1,6 +1,6 @@
 """Fit a trained closed-loop filter's actor by regression on the true state (a diagnostic, not a filter).
 
-    .venv/bin/python benchmarks/closed_loop_regression.py runs/experiment1/paper/nominal/daof-v1-N20/best.pt
+    .venv/bin/python diagnostics/closed_loop_regression.py runs/experiment1/paper/nominal/daof-v1-N20/best.pt
 
 What would DAOF's network reach with exact gradients instead of a critic's? Each iteration
 simulates fresh training runs, filters them closed loop with the current actor (so the inputs are

@@ -1,6 +1,6 @@
 """Where a trained DSAC-T filter loses accuracy: its actor, its Polyak-averaged actor, its critics' best action.
 
-    .venv/bin/python benchmarks/actor_vs_critic.py runs/experiment2/paper/nominal/daof-v2-rs-N20
+    .venv/bin/python diagnostics/actor_vs_critic.py runs/experiment2/paper/nominal/daof-v2-rs-N20
 
 For a run trained with a quadratic critic form (``network.critic_form=quadratic`` or
 ``reward_quadratic``), whose critics carry their best action m(h) explicitly, it prints the RMSE
