@@ -9,7 +9,7 @@ covariances (``_KalmanBase.covariance_schedule``), for t = 1..SCHEDULE_STEPS, th
 * the reward weights W_t, so that a start-up step earns about what a settled step does. DSAC-T's
   critic weighs the mean term of each sample by (σ̄² + ε)/(σ² + ε): without this, the large,
   noisy start-up returns are learned hundreds of times more slowly than the rest and the
-  start-up is never fitted (docs/veh2dof_training.md).
+  start-up is never fitted (docs/experiment1.md).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def reward_weight_schedule(system: StochasticSystem, error_std: torch.Tensor) ->
 
     Scaling by the prediction error √diag P⁻_t instead was measured worse: it leaves the start-up
     so cheap that the entropy bonus puts the actor's widest exploration there, and the squashed
-    loc (the deterministic filter) then overshoots the first updates 1.6–2.4× (docs/veh2dof_training.md).
+    loc (the deterministic filter) then overshoots the first updates 1.6–2.4× (docs/experiment1.md).
     """
     n = system.state_dim
     weights = 1.0 / (n * system.error_scale.float() ** 2)
