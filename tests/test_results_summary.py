@@ -1,0 +1,59 @@
+"""README.md's results are the committed reports': the generated tables match results.json, and
+the README's sentences about them hold."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from daof.evaluate.metrics import paired_rmse_ratio
+from daof.evaluate.summary import BEGIN, END, summary_markdown
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _results(report: str) -> dict:
+    return json.loads((ROOT / "docs/results" / report / "results.json").read_text())
+
+
+def _paired(results: dict, name: str, reference: str) -> dict:
+    f = results["filters"]
+    runs = (torch.tensor(f[n]["per_run_rmse"], dtype=torch.float64) for n in (name, reference))
+    return paired_rmse_ratio(*runs)
+
+
+def test_the_readme_holds_the_generated_summary():
+    readme = (ROOT / "README.md").read_text()
+    block = readme[readme.index(BEGIN) : readme.index(END) + len(END)]
+    assert block == summary_markdown(ROOT), "run scripts/results_summary.py"
+
+
+def test_the_summary_script_checks_the_readme():
+    done = subprocess.run([sys.executable, str(ROOT / "scripts/results_summary.py"), "--check"], capture_output=True)
+    assert done.returncode == 0, done.stderr.decode()
+
+
+def test_experiment1_daof_v1_beats_the_ukf_as_the_readme_says():
+    r = _results("experiment1")
+    c = _paired(r, "DAOF-v1", "UKF")
+    assert all(x < 1 for x in c["ratio"])  # "beats the UKF ... on both states"
+    assert c["high"][0] < 1 <= c["high"][1] + 1e-3  # "interval below 1 on β and reaching 1 on yaw rate"
+    oracle = r["filters"]["DAOF-v1"]["ratio_to_oracle"]
+    assert all(1.0 < x < 1.1 for x in oracle)  # "a few per cent above the PF-oracle"
+    learned = {n: v["rmse"] for n, v in r["filters"].items() if n in ("DAOF-v1", "DAOF-v2", "SLF")}
+    assert all(learned["DAOF-v1"][j] < min(learned["SLF"][j], learned["DAOF-v2"][j]) for j in range(2))
+    for name in ("SLF", "DAOF-v2"):  # "behind the model-based filters"
+        assert all(learned[name][j] > r["filters"]["UKF"]["rmse"][j] for j in range(2))
+
+
+def test_experiment2_daof_v2_leads_the_slf_on_five_states():
+    c = _paired(_results("experiment2"), "DAOF-v2", "SLF")
+    assert sum(h < 1 for h in c["high"]) == 5 and c["low"][2] < 1 < c["high"][2]
+
+
+def test_linear_check_numbers_in_the_readme():
+    f = _results("linear")["filters"]
+    assert all(1.0 <= x <= 1.015 for x in f["DAOF-v1"]["ratio_to_oracle"])  # "within 1.5 %"
+    assert [round(x, 1) for x in f["DAOF-v2"]["ratio_to_oracle"]] == [3.7, 1.8]
