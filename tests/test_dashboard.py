@@ -3,6 +3,7 @@ and learning-curve table; a report run holds the results table, its figures and 
 
 import json
 import struct
+import time
 import zlib
 from pathlib import Path
 
@@ -48,6 +49,16 @@ def _offline_run(root: Path) -> Path:
     return run
 
 
+def finished_records(run: Path, timeout_s: float = 60.0) -> list:
+    """The run's records once wandb's service has written its exit record (it flushes after ``finish``)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        records = read_records(next(run.glob("run-*.wandb")))
+        if any(r.WhichOneof("record_type") == "exit" for r in records) or time.monotonic() > deadline:
+            return records
+        time.sleep(0.5)
+
+
 def _config(records) -> dict:
     config = {}
     for r in records:
@@ -63,7 +74,7 @@ def test_a_training_run_logs_config_identity_scalars_and_curve(tmp_path, monkeyp
     cfg = tiny_cfg("slf.yaml", tmp_path, **{"collector.total_frames": 400, "logger.backend": "wandb"})
     SLFTrainer(cfg).train()
     run = _offline_run(tmp_path)
-    records = read_records(next(run.glob("run-*.wandb")))
+    records = finished_records(run)
     (meta,) = [r.run for r in records if r.WhichOneof("record_type") == "run"][:1]
     assert meta.display_name == "SLF veh2dof/nominal N=20 seed=1"
     assert {"SLF", "veh2dof", "nominal", "N=20", "seed=1"} <= set(meta.tags)

@@ -67,7 +67,7 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path, capsys):
     v2 = jobs["DAOF-v2"].requested_config
     # DAOF-v2 trains with veh14dof's own form (daof/conf/tuning/veh14dof_daof_v2.yaml), in its own directory
     assert v2["network"]["critic_form"] == "reward_quadratic" and v2["network"]["v2_action"] == "estimate"
-    assert v2["collector"]["feedback"] == "mean" and jobs["DAOF-v2"].output_dir == tmp_path / "daof-v2-rs-N20"
+    assert v2["collector"]["feedback"] == "mean" and jobs["DAOF-v2"].output_dir == tmp_path / "daof-v2-rs-N20-s1"
     # from the profile's bank, in the experiment's cache; both trainings on the profile's system
     assert v2["overrides"]["replay"] == {**v2["overrides"]["replay"], "runs": 8, "cache_dir": str(tmp_path / "cache")}
     assert v2["overrides"]["h"] == jobs["SLF"].requested_config["overrides"]["h"] == 0.01

@@ -31,6 +31,7 @@ __all__ = [
     "ReportSpec",
     "Requirement",
     "Training",
+    "SeedSpread",
     "WindowStudy",
     "environment_info",
     "in_report_units",
@@ -131,12 +132,76 @@ class WindowStudy:
 
 
 @dataclass
+class SeedSpread:
+    """Learned rows trained on several seeds: row -> its report rows, one per seed (seed -> name)."""
+
+    rows: dict[str, dict[int, str]]
+
+
+def seed_spread(study, spread: SeedSpread, paired: dict | None, paired_with: str | None) -> dict:
+    """Per learned row over its seeds: mean and std (n − 1) of RMSE and of the ratio to the study's
+    reference per state, the per-seed values, and per seed the paired ratio to ``paired_with`` with
+    how many seeds beat it on every state."""
+    out = {}
+    for row, names in spread.rows.items():
+        rmse = torch.tensor([study.results[n].rmse for n in names.values()], dtype=torch.float64)
+        entry = {
+            "seeds": list(names),
+            "rmse_mean": rmse.mean(0).tolist(),
+            "rmse_std": rmse.std(0).tolist() if len(names) > 1 else [0.0] * rmse.shape[1],
+            "rmse": {seed: study.results[n].rmse for seed, n in names.items()},
+        }
+        ratios = [study.results[n].ratio_to_oracle for n in names.values()]
+        if all(r is not None for r in ratios):
+            r = torch.tensor(ratios, dtype=torch.float64)
+            entry["ratio_mean"] = r.mean(0).tolist()
+            entry["ratio_std"] = r.std(0).tolist() if len(names) > 1 else [0.0] * r.shape[1]
+        if paired and all(n in paired for n in names.values()):
+            entry["paired_with"] = paired_with
+            entry["paired"] = {seed: paired[n] for seed, n in names.items()}
+            entry["seeds_better"] = sum(all(x < 1 for x in paired[n]["ratio"]) for n in names.values())
+        out[row] = entry
+    return out
+
+
+def _seed_lines(spread: dict, study) -> list[str]:
+    if not spread:
+        return []
+    names = study.system.state_names
+    ref = study.reference
+    lines = ["## Over training seeds", ""]
+    head = "| filter | seeds | " + " | ".join(f"RMSE {n}: mean ± std" for n in names)
+    head += (" | " + " | ".join(f"{n} / {ref}: mean ± std" for n in names)) if ref else ""
+    lines += [head + " |", "|---|---|" + "---|" * (len(names) * (2 if ref else 1))]
+    for row, e in spread.items():
+        cells = [f"{m:.4g} ± {sd:.2g}" for m, sd in zip(e["rmse_mean"], e["rmse_std"])]
+        if ref and "ratio_mean" in e:
+            cells += [f"{m:.3f} ± {sd:.3f}" for m, sd in zip(e["ratio_mean"], e["ratio_std"])]
+        lines.append(f"| {row} | {', '.join(map(str, e['seeds']))} | " + " | ".join(cells) + " |")
+    for row, e in spread.items():
+        if "paired" not in e:
+            continue
+        lines += [
+            "",
+            f"{row} per seed, paired with the {e['paired_with']} (ratio [95 % interval] per state): "
+            + "; ".join(
+                f"seed {seed}: "
+                + ", ".join(f"{r:.3f} [{lo:.3f}, {hi:.3f}]" for r, lo, hi in zip(c["ratio"], c["low"], c["high"]))
+                for seed, c in e["paired"].items()
+            )
+            + f". **{e['seeds_better']} of {len(e['seeds'])} seeds beat the {e['paired_with']} on every state.**",
+        ]
+    return lines + [""]
+
+
+@dataclass
 class ReportSpec:
     """What ``write_report`` writes beyond the study's own numbers."""
 
     layout: Layout = field(default_factory=Layout)
     training: Training | None = None
     window_study: WindowStudy | None = None
+    seeds: SeedSpread | None = None  # learned rows trained on several seeds
     requirements: list[Requirement] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     meta: dict = field(default_factory=dict)  # provenance: the command, wall time, ...
@@ -373,6 +438,9 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
         payload["requirements"] = [dataclasses.asdict(r) for r in spec.requirements]
     if paired:
         payload["paired_with"] = {"reference": layout.paired_with, "filters": paired}
+    spread = seed_spread(study, spec.seeds, paired, layout.paired_with) if spec.seeds else {}
+    if spread:
+        payload["seeds"] = spread
     (out / "results.json").write_text(json.dumps(payload, indent=2))
     _write_csv(study, out / "results.csv", units if scale is not None else None)
     figs = _figures(study, out, spec, units, scale, paired)
@@ -381,6 +449,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
     lines = _header_lines(title, profile) + _system_lines(study)
     lines += ["## Results", "", *(_state_columns_table(study, units) if layout.per_state else _results_table(study))]
     lines += ["", *_reference_lines(study), *(_paired_lines(study, layout.paired_with, paired) if paired else [])]
+    lines += _seed_lines(spread, study)
     lines += _requirement_lines(spec.requirements) + _window_lines(spec.window_study, paper)
     lines += _training_lines(spec.training.costs if spec.training else {}) + _paper_lines(paper)
     if spec.notes:

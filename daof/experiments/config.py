@@ -130,7 +130,8 @@ class ExperimentConfig:
     combined_report_dir: str = "${root}/report"  # written when there are several scenarios
     cache_dir: str | None = None  # memoise the study's simulated data here (daof.envs.recorded); null: simulate
     seed: int = 20261122  # evaluation seed: disjoint from training (1..) and validation (9100) seeds
-    training_seed: int = 1
+    # every learned row trains once per seed; with several, its report rows are "<row> (seed <s>)"
+    training_seeds: list[int] = field(default_factory=lambda: [1])
     window: int = 20  # N of every learned row (the window study's row also at the profile's windows)
     parallel_jobs: int = 2  # trainings run as subprocesses, one torch thread each
     timing_threads: int = 1  # torch threads while timing cost per estimate
@@ -155,7 +156,7 @@ NOTE_FIELDS = {
     "scenario": "the scenario",
     "profile": "the profile's name",
     "seed": "the evaluation seed",
-    "training_seed": "the training seed",
+    "training_seeds": "the training seeds (a list)",
     "window": "N of the learned rows",
     "runs": "the profile's runs",
     "steps": "the profile's steps",
@@ -243,6 +244,9 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
         _at_least(getattr(p, key), 1, f"{where}.{key}")
     for key in ("window", "parallel_jobs", "timing_threads"):
         _at_least(getattr(cfg, key), 1, key)
+    seeds = list(cfg.training_seeds)
+    if not seeds or len(set(seeds)) != len(seeds) or any(isinstance(x, bool) or not isinstance(x, int) for x in seeds):
+        raise ValueError(f"training_seeds must be distinct integers, at least one, got {seeds}")
     if cfg.logger not in LOGGERS:
         raise ValueError(f"logger must be one of {list(LOGGERS)}, got {cfg.logger!r}")
 

@@ -38,6 +38,7 @@ from daof.evaluate.report import (
     Layout,
     ReportSpec,
     Requirement,
+    SeedSpread,
     Training,
     WindowStudy,
     write_report,
@@ -99,25 +100,33 @@ class Plan:
 
 
 # ----------------------------------------------------------------------------------------- planning
+def seed_row(row: str, seed: int, seeds) -> str:
+    """The report row of ``row`` trained on ``seed``: the row itself with one seed, else "<row> (seed <s>)"."""
+    return row if len(seeds) == 1 else f"{row} (seed {seed})"
+
+
 def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[dict[str, TrainingJob], dict[str, int]]:
-    """Every learned row at the experiment's window, and the window study's row at each of the profile's
-    other windows (``"<row> (N=<n>)"``, largest first); ``label`` is appended to the job names in the log."""
+    """Every learned row at the experiment's window on every training seed (``seed_row``), and the window
+    study's row at each of the profile's other windows (``"<row> (N=<n>)"``, largest first; first seed
+    only); ``label`` is appended to the job names in the log."""
     root = Path(cfg.output_root)
-    common = [f"system={cfg.system}", f"scenario={cfg.scenario}", f"seed={cfg.training_seed}"]
+    seeds = list(cfg.training_seeds)
+    common = [f"system={cfg.system}", f"scenario={cfg.scenario}"]
     extra = [*cfg.training_overrides, *(f"overrides.{k}={v}" for k, v in p.system.items())]
     if cfg.logger:  # logger keys never make a finished run stale (daof.train.base.RESUMABLE_CHANGES)
         extra += [f"logger.backend={cfg.logger}", f"logger.group={_group(cfg)}", f"logger.tags=[{cfg.profile}]"]
     rows = []
     for name in cfg.learned:
-        rows.append((name, name, cfg.window))
+        rows += [(seed_row(name, s, seeds), name, cfg.window, s) for s in seeds]
         if name == cfg.window_study:
-            rows += [(f"{name} (N={n})", name, n) for n in sorted(p.windows, reverse=True) if n != cfg.window]
+            others = sorted(p.windows, reverse=True)
+            rows += [(f"{name} (N={n})", name, n, seeds[0]) for n in others if n != cfg.window]
     jobs, windows = {}, {}
-    for name, row_name, n in rows:
+    for name, row_name, n, seed in rows:
         row = cfg.learned[row_name]
-        overrides = [f"filter={row.filter}", *common, f"window={n}", *extra, *row.overrides]
+        overrides = [f"filter={row.filter}", *common, f"seed={seed}", f"window={n}", *extra, *row.overrides]
         overrides += p.overrides.get(row_name, [])
-        out = root / f"{row.dir or row.filter.replace('_', '-')}-N{n}"
+        out = root / f"{row.dir or row.filter.replace('_', '-')}-N{n}-s{seed}"
         jobs[name] = TrainingJob(name + label, out, int(p.frames[row_name]), overrides)
         windows[name] = n
     return jobs, windows
@@ -207,7 +216,7 @@ def _fields(sp: ScenarioPlan, learned: dict) -> dict:
         "scenario": cfg.scenario,
         "profile": cfg.profile,
         "seed": cfg.seed,
-        "training_seed": cfg.training_seed,
+        "training_seeds": list(cfg.training_seeds),
         "window": cfg.window,
         "runs": p.runs,
         "steps": p.steps,
@@ -280,7 +289,11 @@ def requirements(cfg: ExperimentConfig, study) -> list[Requirement]:
     """Each ``requirements`` entry, met or not from the study's numbers."""
     out = []
     ref, names = study.reference, study.system.state_names
-    for name, req in cfg.requirements.items():
+    seeds = list(cfg.training_seeds)
+    rows = {}  # a learned row's requirement holds for each of its seeds
+    for r, req in cfg.requirements.items():
+        rows.update({seed_row(r, s, seeds): req for s in seeds} if r in cfg.learned else {r: req})
+    for name, req in rows.items():
         text = f"{name} RMSE ≤ {req.tolerance:g}× {ref} per state"
         ratio = study.results[name].ratio_to_oracle if name in study.results else None
         if ratio is None:
@@ -356,11 +369,13 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
 
     print(f"3/3 report ({scenario})")
     learned = {name: filters[name] for name in sp.jobs}
-    rows = list(cfg.learned)  # the learning curves: every row at the experiment's window
+    seeds = list(cfg.training_seeds)
+    rows = [seed_row(r, s, seeds) for r in cfg.learned for s in seeds]  # learning curves: every row and seed
     study_rows = None
     if cfg.window_study:
         row = cfg.window_study
-        names = {n: row if n == cfg.window else f"{row} (N={n})" for n in sorted(p.windows)}
+        first = seed_row(row, cfg.training_seeds[0], cfg.training_seeds)
+        names = {n: first if n == cfg.window else f"{row} (N={n})" for n in sorted(p.windows)}
         study_rows = WindowStudy(
             row,
             [
@@ -369,8 +384,10 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
             ],
         )
     checks = requirements(cfg, study)
+    spread = SeedSpread({r: {s: seed_row(r, s, seeds) for s in seeds} for r in cfg.learned}) if len(seeds) > 1 else None
     spec = ReportSpec(
         layout=cfg.report,
+        seeds=spread,
         training=Training(
             learning_curves(filters, rows), validation_references(filters, rows), training_costs(sp.jobs)
         ),
