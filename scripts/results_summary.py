@@ -1,7 +1,7 @@
 """Write (or check) README.md's results summary from the committed reports' results.json.
 
-    .venv/bin/python scripts/results_summary.py          # rewrite the block in README.md
-    .venv/bin/python scripts/results_summary.py --check  # exit 1 if README.md's block is out of date
+.venv/bin/python scripts/results_summary.py          # rewrite the block in README.md
+.venv/bin/python scripts/results_summary.py --check  # exit 1 if README.md's block is out of date
 """
 
 from __future__ import annotations
