@@ -138,6 +138,7 @@ class ExperimentConfig:
     logger: str = ""  # wandb: every training and the report log an (offline) wandb run; "" none (docs/experiments.md)
     learned: dict[str, LearnedRow] = field(default_factory=dict)  # report row -> its training, in report order
     training_overrides: list[str] = field(default_factory=list)  # overrides of every training
+    sweep_override: str | None = None  # one training override applied after all others (daof.experiments.sweep)
     window_study: str | None = None  # a learned row trained again at every N of the profile's windows
     classical: dict[str, ClassicalFilter] = field(default_factory=dict)  # study row -> model-based filter
     reference: list[str] = field(default_factory=list)  # the study's reference: the first of these that runs

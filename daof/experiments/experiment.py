@@ -125,7 +125,7 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
     for name, row_name, n, seed in rows:
         row = cfg.learned[row_name]
         overrides = [f"filter={row.filter}", *common, f"seed={seed}", f"window={n}", *extra, *row.overrides]
-        overrides += p.overrides.get(row_name, [])
+        overrides += [*p.overrides.get(row_name, []), *([cfg.sweep_override] if cfg.sweep_override else [])]
         out = root / f"{row.dir or row.filter.replace('_', '-')}-N{n}-s{seed}"
         jobs[name] = TrainingJob(name + label, out, int(p.frames[row_name]), overrides)
         windows[name] = n
