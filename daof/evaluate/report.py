@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from daof.evaluate import figures
-from daof.evaluate.metrics import paired_rmse_ratio
+from daof.evaluate.metrics import DIVERGENCE_FACTOR, paired_rmse_ratio
 from daof.evaluate.study import ORACLE
 
 __all__ = [
@@ -189,24 +189,52 @@ def ratio_label(study) -> str:
     return f"ratio to {ref}"
 
 
-def _reference_lines(study) -> list[str]:
-    """One sentence under the results table on what the ratios and the diverged count compare with."""
-    ref = getattr(study, "reference", None)
-    if ref is None:
+def _divergence_sentence(study, ref: str | None) -> str:
+    """What the diverged count counts (``daof.evaluate.study._add_oracle_metrics``), with the system's limits."""
+    s = study.system
+    low, high = s.divergence_limits()
+    limits = ", ".join(f"{n} [{lo:.3g}, {hi:.3g}] {u}" for n, u, lo, hi in zip(s.state_names, s.state_units, low, high))
+    text = (
+        "a diverged run has a non-finite estimate, or one outside the plausible state range widened by its width "
+        f"on each side ({limits})"
+    )
+    if ref is not None:
+        text += f", or an RMSE above {DIVERGENCE_FACTOR:g}x {ref}'s RMSE on the same run"
+    return text + "."
+
+
+def _saturation_sentence(study) -> list[str]:
+    """What the bound column counts, when some filter has bounds (the learned filters)."""
+    if not any(r.saturated is not None for r in study.results.values()):
         return []
+    return [
+        "At a bound: per state, the share of a learned filter's estimates at an end of its output range (the "
+        "plausible state range it is clamped or squashed to; within 1e-6 of the range's width); – for filters "
+        "without bounds.",
+        "",
+    ]
+
+
+def _reference_lines(study) -> list[str]:
+    """Sentences under the results table: what the ratios, the diverged count and the bound column compare with."""
+    ref = getattr(study, "reference", None)
+    lines = _saturation_sentence(study)
+    if ref is None:
+        return ["In the diverged count, " + _divergence_sentence(study, None), "", *lines]
     if ref == ORACLE and study.system.scenario != "nominal":
         return [
             f"Scenario `{study.system.scenario}`: the PF-oracle is the near-optimal reference only on `nominal`. "
             "Here it filters with the nominal model like every model-based filter, so the ratios are relative "
-            "to the nominal-model PF-oracle (a ratio below 1 is possible), not to the optimum; a diverged run "
-            "has a non-finite estimate or an RMSE above 10x its pooled RMSE.",
+            "to the nominal-model PF-oracle (a ratio below 1 is possible), not to the optimum; "
+            + _divergence_sentence(study, ref),
             "",
+            *lines,
         ]
-    return [
-        f"Ratios are per state, relative to {ref}; a diverged run has a non-finite estimate or an RMSE above 10x "
-        f"{ref}'s pooled RMSE.",
-        "",
-    ]
+    return [f"Ratios are per state, relative to {ref}; " + _divergence_sentence(study, ref), "", *lines]
+
+
+def _saturated(r) -> str:
+    return _fmt(r.saturated, 3) if r.saturated is not None else "–"
 
 
 def _results_table(study) -> list[str]:
@@ -215,8 +243,8 @@ def _results_table(study) -> list[str]:
     lines = [
         f"| filter | RMSE {states} | {ratio_label(study)} ({' / '.join(s.state_names)}) "
         "| per-run RMSE median (IQR) | cost per estimate [ms] (batch 1) | throughput [estimates/s] (batch R) "
-        "| diverged runs | covariance repairs |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| diverged runs | covariance repairs | at a bound ({' / '.join(s.state_names)}) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in study.results.items():
         runs = torch.tensor(r.per_run_rmse)
@@ -225,10 +253,13 @@ def _results_table(study) -> list[str]:
         cost = f"{r.cost_ms:.3f}" if r.cost_ms is not None else "–"
         lines.append(
             f"| {name} | {_fmt(r.rmse)} | {_fmt(r.ratio_to_oracle, 3)} | {spread} | {cost} | "
-            f"{r.throughput_per_s:,.0f} | {r.diverged} | {r.repairs} |"
+            f"{r.throughput_per_s:,.0f} | {r.diverged} | {r.repairs} | {_saturated(r)} |"
         )
     return lines
 
+
+#: the fields of each filter in the scenario report's results.json
+_SCENARIO_FIELDS = ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "diverged_runs", "repairs", "saturated")
 
 #: bootstrap resamples of the report's paired comparison
 PAIRED_DRAWS = 4000
@@ -312,7 +343,7 @@ def _state_columns_table(study, units) -> list[str]:
     """The paper's Table II layout: one RMSE column per state, then cost; per-run spread below.
 
     The ratio-to-oracle column appears only if some filter has one (no oracle on model-free
-    systems); without an oracle a diverged run is a non-finite one.
+    systems); without one a diverged run is one with an estimate non-finite or outside the plausible range.
     """
     s = study.system
     results = study.results
@@ -321,14 +352,16 @@ def _state_columns_table(study, units) -> list[str]:
     head = ["filter", *(f"RMSE {n} [{u}]" for n, u in zip(s.state_names, units))]
     head += [ratio_label(study)] if has_ratio else []
     head += ["cost per estimate [ms] (batch 1)", "throughput [estimates/s] (batch R)"]
-    head += ["diverged runs" if has_ratio else "diverged runs (non-finite)"]
+    head += ["diverged runs"]
     head += ["covariance repairs"] if has_repairs else []
+    head += [f"at a bound ({' / '.join(s.state_names)})"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         row = [name, *(f"{v:.4g}" for v in r.rmse)]
         row += [_fmt(r.ratio_to_oracle, 3)] if has_ratio else []
         row += [f"{r.cost_ms:.3f}" if r.cost_ms is not None else "–", f"{r.throughput_per_s:,.0f}", str(r.diverged)]
         row += [str(r.repairs)] if has_repairs else []
+        row += [_saturated(r)]
         lines.append("| " + " | ".join(row) + " |")
     lines += [
         "",
@@ -402,10 +435,14 @@ def _write_csv(study, path: Path, units) -> None:
             + rmse
             + [f"ratio_{n}" for n in names]
             + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
+            + [f"saturated_{n}" for n in names]
         )
         for name, r in study.results.items():
             ratio = r.ratio_to_oracle or [None] * s.state_dim
-            writer.writerow([name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs])
+            saturated = r.saturated or [None] * s.state_dim
+            writer.writerow(
+                [name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs, *saturated]
+            )
 
 
 def _figures(study, out: Path, spec: ReportSpec, units, scale) -> dict[str, Path]:
@@ -577,7 +614,7 @@ def write_scenario_report(
             sc: {
                 "reference": st.reference,
                 "filters": {
-                    n: {k: getattr(r, k) for k in ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "repairs")}
+                    n: {k: getattr(r, k) for k in _SCENARIO_FIELDS}
                     for n, r in st.results.items()
                 },
             }

@@ -4,7 +4,8 @@ Transitions are sampled from the system's true process noise around the nominal 
 from the exact measurement log-density log p(y_t − g(x_t, u_t)), all in log space. The estimate is
 the weighted mean before resampling; resampling is systematic. A NaN measurement channel is
 missing: the weights then use the density of the present channels only, and a step with no
-channel present leaves them unchanged (docs/missing_data.md).
+channel present leaves them unchanged (docs/missing_data.md). Log-weights are kept and normalised
+in float64 after subtracting their maximum, so a wild measurement (1e9) cannot make them sum above 1.
 """
 
 from __future__ import annotations
@@ -86,7 +87,8 @@ class ParticleFilter(Filter):
         runs, steps = y.shape[:2]
         y, u_prev, u = (v.to(torch.float32) for v in (y, u_prev, u))
         x = s.prior.sample((runs, n), generator)  # particles of x_0 ~ prior, [runs, N, state_dim]
-        log_w = torch.full((runs, n), -math.log(n), device=y.device)
+        # log-weights in float64: a weight of ~1e10 in log space (a 1e9 measurement) keeps ~1e-6 resolution
+        log_w = torch.full((runs, n), -math.log(n), device=y.device, dtype=torch.float64)
         out = torch.empty(runs, steps, s.state_dim, device=y.device)
         # missing channels (NaN), found once: the per-step test is a list lookup, so a study with
         # nothing missing runs exactly the loop it ran before
@@ -103,9 +105,11 @@ class ParticleFilter(Filter):
                 log_w = log_w + s.measurement_noise.marginal_log_prob(innovation, present[:, t, None, :])
             else:
                 log_w = log_w + s.measurement_noise.log_prob(innovation)
+            # normalise: subtract the largest first (exp never overflows), then log Σ exp (weights sum to 1)
+            log_w = log_w - log_w.amax(-1, keepdim=True)
             log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
             w = log_w.exp()
-            estimate = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
+            estimate = (w[..., None] * x).sum(1).to(out.dtype)  # x̂_t = Σ w^i x^i
             # a run that went non-finite stays NaN (resampling could otherwise revive it)
             diverged |= ~torch.isfinite(estimate).all(-1)
             out[:, t] = estimate.masked_fill(diverged[:, None], math.nan)

@@ -1,0 +1,138 @@
+"""Faults of docs/reliability.md: wild measurements are flagged as diverged, the PF's weights survive a
+1e9 measurement, learned filters count their bound hits and take float64 data, bad parameters and
+seeds are one line."""
+
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from daof.envs import make_system
+from daof.evaluate.study import FilterResult, _add_oracle_metrics
+from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_learned_filters import FORMS, small_form  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def veh():
+    return make_system("veh2dof")
+
+
+@pytest.fixture(scope="module")
+def veh_data(veh):
+    return veh.simulate(4, 100, seed=0)
+
+
+def glitch(data, value, channel, run=0, step=10):
+    """``data`` with one measurement replaced by ``value``."""
+    out = data.clone()
+    out["measurement"][run, step, channel] = value
+    return out
+
+
+# ----------------------------------------------------------------- divergence flags
+@pytest.mark.parametrize("make", [EKF, UKF], ids=["EKF", "UKF"])
+def test_a_lateral_acceleration_glitch_is_flagged_as_a_diverged_run(make, veh, veh_data):
+    """One 1e4 m/s² a_y sample leaves the EKF/UKF tens of rad off (finite): that run is counted."""
+    filt = make(veh)
+    clean = filt.run(veh_data)
+    assert filt.stats["diverged"] == 0
+    estimates = filt.run(glitch(veh_data, 1e4, channel=0))
+    assert torch.isfinite(estimates).all()  # finite: a non-finite check alone would not see it
+    assert (estimates[0] - clean[0]).abs().max() > 1.0
+    assert filt.stats["diverged"] == 1
+    assert veh.diverged_runs(estimates).tolist() == [True, False, False, False]
+
+
+def test_an_outlier_into_the_kalman_filter_is_flagged():
+    lin = make_system("linear")
+    data = lin.simulate(3, 60, seed=1)
+    kf = KalmanFilter(lin)
+    estimates = kf.run(glitch(data, 1e6, channel=0, run=1))
+    assert torch.isfinite(estimates).all() and estimates.abs().max() > 1e4
+    assert kf.stats["diverged"] == 1 and lin.diverged_runs(estimates).tolist() == [False, True, False]
+
+
+def test_the_study_flags_a_run_far_above_the_reference_on_that_run():
+    """10x the reference's RMSE on the same run, not its pooled RMSE (which a hard run dominates)."""
+    rows = {
+        "PF-oracle": FilterResult(
+            rmse=[0.07, 0.07], per_run_rmse=[[0.01, 0.01], [0.1, 0.1]], cost_ms=1, threads=1, throughput_per_s=1
+        ),
+        "F": FilterResult(
+            rmse=[0.1, 0.1], per_run_rmse=[[0.2, 0.01], [0.1, 0.1]], cost_ms=1, threads=1, throughput_per_s=1
+        ),
+    }
+    _add_oracle_metrics(rows)
+    assert (rows["F"].diverged, rows["F"].diverged_runs) == (1, [0])  # 0.2 > 10 x 0.01 on run 0
+    assert rows["PF-oracle"].diverged == 0
+
+
+def test_the_study_flags_an_estimate_outside_the_plausible_range(veh):
+    """An RMSE below 10x the reference's is still diverged when an estimate leaves the limits."""
+    estimates = torch.zeros(2, 5, 2)
+    estimates[1, 3, 0] = 0.95  # past β's limit 0.9 rad (0.3 widened by its range)
+    rows = {
+        name: FilterResult(
+            rmse=[1.0, 1.0], per_run_rmse=[[1.0, 1.0], [1.0, 1.0]], cost_ms=1, threads=1, throughput_per_s=1
+        )
+        for name in ("PF-oracle", "F")
+    }
+    _add_oracle_metrics(rows, estimates={"PF-oracle": torch.zeros(2, 5, 2), "F": estimates}, system=veh)
+    assert (rows["F"].diverged, rows["F"].diverged_runs) == (1, [1]) and rows["PF-oracle"].diverged == 0
+
+
+def test_a_1e9_measurement_keeps_the_particle_filters_weights_normalised(veh, veh_data):
+    """In float32, log-weights of ~-1e10 lost their normalisation (weights summing to k > 1)."""
+    pf = ParticleFilter(veh, num_particles=500)
+    estimates = pf.run(glitch(veh_data, 1e9, channel=0))
+    assert torch.isfinite(estimates).all()
+    assert (estimates >= veh.state_low).all() and (estimates <= veh.state_high).all()
+    assert (estimates - veh_data["state"]).abs().amax((0, 1)).tolist() < [0.2, 0.5]
+    assert pf.stats["diverged"] == 0
+
+
+# ----------------------------------------------------------------- learned filters: bounds and dtypes
+@pytest.mark.parametrize("form", list(FORMS))
+def test_learned_filters_count_the_estimates_at_their_bounds(form, veh_data):
+    filt = small_form(form)
+    data = veh_data[:2, :40]
+    estimates = filt.run(data)
+    assert filt.stats["saturated"] == filt.saturation(estimates).tolist()
+    assert len(filt.stats["saturated"]) == 2
+    with torch.no_grad():  # loc ≫ 0 (and an update bound wider than the range): pushed to the upper end
+        filt.policy.mlp[-1].bias.fill_(50.0)
+        if filt.acts_by_update:
+            filt.correction_scale.fill_(100.0)
+    pushed = filt.run(data)
+    at_high = torch.isclose(pushed, filt.state_high.expand_as(pushed), rtol=0, atol=1e-6)
+    assert at_high.any()
+    assert filt.stats["saturated"] == pytest.approx(at_high.reshape(-1, 2).double().mean(0).tolist())
+    assert max(filt.stats["saturated"]) > 0
+
+
+def test_saturation_is_the_share_at_either_end():
+    filt = small_form("DAOF-v1")
+    low, high = filt.state_low, filt.state_high
+    est = torch.stack([low, high, (low + high) / 2, low + 1e-3 * (high - low)]).unsqueeze(0)  # [1, 4, 2]
+    assert filt.saturation(est).tolist() == [0.5, 0.5]
+
+
+@pytest.mark.parametrize("form", list(FORMS))
+def test_learned_filters_take_float64_data(form, veh_data):
+    """Cast at the entry; the estimates are those of the float32 data, in the network's dtype."""
+    filt = small_form(form)
+    data = veh_data[:2, :30]
+    expected = filt.run(data)
+    wide = data.clone().apply(lambda v: v.double())
+    assert wide["measurement"].dtype == torch.float64
+    got = filt.run(wide)
+    assert got.dtype == torch.float32 and torch.equal(got, expected)
+    assert torch.equal(filt.run_streaming(wide), filt.run_streaming(data))
+    too_big = glitch(wide, 1e300, channel=1)
+    with pytest.raises(ValueError, match=r"'measurement' at \[run, step, channel\] = \[0, 10, 1\] is 1e\+300") as e:
+        filt.run(too_big)
+    assert "\n" not in str(e.value)
