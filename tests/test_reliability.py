@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from daof.envs import make_system
+
 from daof.evaluate.study import FilterResult, _add_oracle_metrics
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter
 
@@ -136,3 +136,44 @@ def test_learned_filters_take_float64_data(form, veh_data):
     with pytest.raises(ValueError, match=r"'measurement' at \[run, step, channel\] = \[0, 10, 1\] is 1e\+300") as e:
         filt.run(too_big)
     assert "\n" not in str(e.value)
+
+
+class Glitched:
+    """A filter that sees one wild lateral acceleration in run 0 (what a sensor glitch would feed it)."""
+
+    def __init__(self, filt):
+        self.filt = filt
+
+    def run(self, data):
+        return self.filt.run(glitch(data, 1e4, channel=0))
+
+    run_streaming = run
+
+    @property
+    def stats(self):
+        return self.filt.stats
+
+
+def test_the_report_shows_diverged_runs_and_bound_hits(veh, tmp_path):
+    import csv
+    import json
+
+    from daof.evaluate.report import write_report
+    from daof.evaluate.study import run_study
+
+    learned = small_form("DAOF-v2")
+    filters = {"PF-oracle": ParticleFilter(veh, 300), "EKF": Glitched(EKF(veh)), "DAOF-v2": learned}
+    study = run_study(veh, filters, runs=3, steps=40, seed=0, measure_cost=False, log=lambda *_: None)
+    assert (study.results["EKF"].diverged, study.results["EKF"].diverged_runs) == (1, [0])
+    report = write_report(study, tmp_path, title="t", profile="tiny")
+    results = json.loads((tmp_path / "results.json").read_text())["filters"]
+    assert results["EKF"]["diverged_runs"] == [0] and results["EKF"]["saturated"] is None
+    assert results["DAOF-v2"]["saturated"] == learned.stats["saturated"]
+    rows = {row["filter"]: row for row in csv.DictReader((tmp_path / "results.csv").open())}
+    assert rows["DAOF-v2"]["saturated_beta"] != "" and rows["EKF"]["saturated_beta"] == ""
+    text = report.read_text()
+    assert "| at a bound (beta / yaw_rate) |" in text
+    ekf_row = next(line for line in text.splitlines() if line.startswith("| EKF |"))
+    assert ekf_row.endswith("| 1 | 0 | – |")
+    assert "widened by its width on each side (beta [-0.9, 0.9] rad, yaw_rate [-4.5, 4.5] rad/s)" in text
+    assert "above 10x PF-oracle's RMSE on the same run" in text
