@@ -177,3 +177,39 @@ def test_the_report_shows_diverged_runs_and_bound_hits(veh, tmp_path):
     assert ekf_row.endswith("| 1 | 0 | – |")
     assert "widened by its width on each side (beta [-0.9, 0.9] rad, yaw_rate [-4.5, 4.5] rad/s)" in text
     assert "above 10x PF-oracle's RMSE on the same run" in text
+
+
+# ----------------------------------------------------------------- veh14dof parameters
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ({"m_s": -965.7}, "m_s must be > 0, got -965.7"),
+        ({"m_uf": 0.0}, "m_uf must be > 0"),
+        ({"dt": 0.0}, "dt must be > 0"),
+        ({"dt": -0.02}, "dt must be > 0"),
+        ({"h": 0.0}, "h must be > 0"),
+        ({"I_zz": float("nan")}, "I_zz must be finite"),
+        ({"k_t": float("inf")}, "k_t must be finite"),
+        ({"c_sf": -1.0}, "c_sf must be >= 0"),
+        ({"gnss_pos_std": -1.5}, "gnss_pos_std must be >= 0"),
+        ({"dist_weights": (1.2, -0.2)}, "dist_weights must be non-negative weights summing to 1"),
+        ({"dist_weights": (0.5, 0.4)}, "dist_weights must be non-negative weights summing to 1"),
+        ({"v0_kmh": (80.0, 60.0)}, r"v0_kmh must be a range \(low, high\) with low <= high"),
+        ({"brake_front": 1.5}, r"brake_front must be in \[0, 1\]"),
+        ({"gnss_period_steps": 0}, "gnss_period_steps must be > 0"),
+        ({"gnss_period_steps": 2.5}, "gnss_period_steps must be a whole number"),
+        ({"a_cmd_min": 2.0}, "a_cmd_min must be <= a_cmd_max"),
+        ({"spin_speeds_kmh": (80.0, 60.0, 70.0)}, "spin_speeds_kmh must be >= 2 increasing speeds"),
+        ({"mu_scale": "high"}, "mu_scale must be a number"),
+    ],
+)
+def test_veh14dof_parameters_are_checked_up_front_in_one_line(override, message, monkeypatch):
+    from daof.envs.vehicle14dof import system as veh14
+
+    def no_simulation(self):
+        raise AssertionError("the prior was simulated before the parameters were checked")
+
+    monkeypatch.setattr(veh14.Vehicle14DOF, "_derive_prior", no_simulation)
+    with pytest.raises(ValueError, match=message) as error:
+        make_system("veh14dof", **override)
+    assert "\n" not in str(error.value)
