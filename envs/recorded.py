@@ -32,6 +32,7 @@ import os
 from pathlib import Path
 
 import torch
+from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem, SystemWrapper
 from tensordict import TensorDict
 
@@ -60,7 +61,7 @@ def cache_key(system: StochasticSystem, runs: int, steps: int, seed: int, device
         "params": json.loads(json.dumps(_params(system), default=str)),
         "runs": int(runs),
         "steps": int(steps),
-        "seed": int(seed),
+        "seed": as_seed(seed),
         "device": str(torch.device(device)),
     }
 
@@ -117,7 +118,7 @@ class RecordedSystem(SystemWrapper):
         if int(runs) < 1 or int(steps) < 1:
             raise ValueError(f"a bank needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
         super().__init__(base)
-        self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), int(seed)
+        self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), as_seed(seed)
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self._bank: TensorDict | None = None
         #: bank episodes still to be dealt in the current pass (refilled with a fresh shuffle)

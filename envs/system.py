@@ -21,6 +21,7 @@ import copy
 
 import numpy as np
 import torch
+from daof.envs.checks import as_seed
 from daof.envs.noise import GaussianNoise, Noise
 from tensordict import TensorDict
 
@@ -216,7 +217,7 @@ class StochasticSystem:
         """
         if runs < 1 or steps < 1:
             raise ValueError(f"simulate needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
-        generator = torch.Generator(device=device).manual_seed(int(seed))
+        generator = torch.Generator(device=device).manual_seed(as_seed(seed))
         sim = self.reset_episode(runs, generator, device)
         frames = []
         for _ in range(steps):

@@ -213,3 +213,39 @@ def test_veh14dof_parameters_are_checked_up_front_in_one_line(override, message,
     with pytest.raises(ValueError, match=message) as error:
         make_system("veh14dof", **override)
     assert "\n" not in str(error.value)
+
+
+# ----------------------------------------------------------------- seeds
+def seed_users(tmp_path):
+    from daof.envs import make_env
+    from daof.envs.recorded import RecordedSystem, cache_key
+
+    from daof.evaluate.dropout import Dropout
+    from daof.evaluate.study import run_study
+
+    lin = make_system("linear")
+    data = lin.simulate(2, 5, seed=0)
+    return {
+        "simulate": lambda seed: lin.simulate(2, 5, seed),
+        "run_study": lambda seed: run_study(lin, {}, 2, 5, seed, measure_cost=False, log=lambda *_: None),
+        "ParticleFilter": lambda seed: ParticleFilter(lin, 10, seed=seed),
+        "make_env": lambda seed: make_env("linear", batch_size=2, window=2, seed=seed),
+        "Dropout": lambda seed: Dropout(p=0.1, blackout=None, seed=seed).apply(data, lin),
+        "RecordedSystem": lambda seed: RecordedSystem(lin, runs=2, steps=5, seed=seed),
+        "cache_key": lambda seed: cache_key(lin, 2, 5, seed),
+        "veh2dof simulate": lambda seed: make_system("veh2dof").simulate(2, 5, seed),
+    }
+
+
+@pytest.mark.parametrize(
+    "user", ["simulate", "run_study", "ParticleFilter", "make_env", "Dropout", "RecordedSystem", "cache_key",
+             "veh2dof simulate"]
+)  # fmt: skip
+def test_a_fractional_seed_is_refused_not_truncated(user, tmp_path):
+    call = seed_users(tmp_path)[user]
+    for bad in (1.9, "1", True):
+        with pytest.raises(ValueError, match=r"seed must be an integer, got") as error:
+            call(bad)
+        assert "\n" not in str(error.value)
+    call(2)  # an integer seed works
+    call(2.0)  # and an integral float loses nothing

@@ -14,6 +14,7 @@ import math
 
 import torch
 
+from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
 
@@ -63,7 +64,7 @@ class ParticleFilter(Filter):
         if resample not in ("ess", "always"):
             raise ValueError(f"resample must be 'ess' or 'always', got {resample!r}")
         self.num_particles = num_particles
-        self.seed = seed
+        self.seed = as_seed(seed)
         self.resample = resample
         self.ess_fraction = ess_fraction
         self.max_elements = max_elements
