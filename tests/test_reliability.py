@@ -249,3 +249,63 @@ def test_a_fractional_seed_is_refused_not_truncated(user, tmp_path):
         assert "\n" not in str(error.value)
     call(2)  # an integer seed works
     call(2.0)  # and an integral float loses nothing
+
+
+# ----------------------------------------------------------------- files and directories
+TINY_SLF = [
+    "filter=slf",
+    "window=4",
+    "network.num_cells=16",
+    "validation.runs=2",
+    "validation.steps=30",
+    "validation.every_frames=200",
+    "collector.env_batch=4",
+    "collector.episode_steps=50",
+    "checkpoint.every_frames=200",
+    "logger.backend=csv",
+]
+
+
+def test_a_truncated_best_pt_in_a_finished_job_is_written_again_from_its_checkpoint(tmp_path):
+    """It used to count as finished and end every rerun in the study's load of best.pt."""
+    from daof.experiments.jobs import TrainingJob, run_jobs
+    from daof.filters.learned import load_filter
+
+    job = TrainingJob("SLF", tmp_path / "slf", 400, TINY_SLF)
+    run_jobs([job], parallel=1, log=lambda _: None)
+    best = job.output_dir / "best.pt"
+    weights = load_filter(best).state_dict()
+    best.write_bytes(best.read_bytes()[:100])  # a disk that filled while it was written
+    assert not job.finished()
+    lines = []
+    run_jobs([job], parallel=1, log=lines.append)
+    assert any("SLF: training (resuming)" in line for line in lines), lines
+    assert job.finished() and job.summary()["frames"] == 400
+    again = load_filter(best).state_dict()
+    assert all(torch.equal(weights[k], again[k]) for k in weights)
+
+
+def test_an_unwritable_run_or_output_directory_is_one_line_before_any_work(tmp_path, monkeypatch, capsys):
+    from daof.experiments.experiment import main as experiment_main
+    from daof.train.__main__ import main as train_main
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    with pytest.raises(SystemExit, match=f"^error: cannot write the run directory {blocker}/run: Not a directory$"):
+        train_main([*TINY_SLF, f"output_dir={blocker}/run"])
+    with pytest.raises(SystemExit, match=f"^cannot write the output directory {blocker}/x: Not a directory$"):
+        experiment_main(["profile=tiny", f"output_root={blocker}/x"], experiment="veh2dof")
+
+    import errno
+    import tempfile
+
+    def read_only(*args, **kwargs):  # what a read-only file system answers (root writes through chmod)
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    with pytest.raises(SystemExit, match="^error: cannot write the run directory .*: Read-only file system$"):
+        train_main([*TINY_SLF, f"output_dir={tmp_path}/run"])
+    with pytest.raises(SystemExit, match="^cannot write the output directory .*: Read-only file system$"):
+        experiment_main(["profile=tiny", f"output_root={tmp_path}/x"], experiment="veh2dof")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file", "run", "x"]  # created, nothing written
+    assert not any((tmp_path / "run").iterdir()) and not any((tmp_path / "x").iterdir())

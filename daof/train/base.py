@@ -23,7 +23,7 @@ from tqdm import tqdm
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
-from daof.io import atomic_write_text
+from daof.io import atomic_write_text, writable_directory
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
 from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
@@ -67,10 +67,7 @@ class FilterTrainer:
         torch.set_num_threads(int(cfg.threads))
         torch.manual_seed(int(cfg.seed))
         self.out = Path(cfg.output_dir)
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except PermissionError as error:
-            raise ValueError(f"cannot write the run directory {self.out}: {error.strerror}") from None
+        writable_directory(self.out, "run directory")
         self._lock = None
         self._resumed = False
         self.system = make_system(cfg.system, cfg.scenario, **cfg.overrides)
