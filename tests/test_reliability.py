@@ -309,3 +309,77 @@ def test_an_unwritable_run_or_output_directory_is_one_line_before_any_work(tmp_p
         experiment_main(["profile=tiny", f"output_root={tmp_path}/x"], experiment="veh2dof")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a-file", "run", "x"]  # created, nothing written
     assert not any((tmp_path / "run").iterdir()) and not any((tmp_path / "x").iterdir())
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A finished tiny SLF training: its directory."""
+    from daof.train.__main__ import main as train_main
+
+    out = tmp_path_factory.mktemp("tiny") / "run"
+    train_main([*TINY_SLF, f"output_dir={out}", "collector.total_frames=200"])
+    return out
+
+
+def damaged_checkpoints(blob: dict) -> dict:
+    """A training checkpoint as a future, an older or a damaged version would leave it, and the expected line."""
+    config, training = blob["config"], blob["training"]
+    return {
+        "future key": ({**blob, "config": {**config, "future_option": 3}}, "config key 'future_option', which this"),
+        "missing key": ({**blob, "config": {k: v for k, v in config.items() if k != "window"}}, "no config key 'window'"),
+        "no config": ({k: v for k, v in blob.items() if k != "config"}, "cannot be resumed: it has no config"),
+        "config not a mapping": ({**blob, "config": 3}, "its config is a int, not a mapping"),
+        "no filter": ({k: v for k, v in blob.items() if k != "filter"}, "cannot be resumed: it has no filter"),
+        "no frames": (
+            {**blob, "training": {k: v for k, v in training.items() if k != "frames"}},
+            "it has no training/frames",
+        ),
+        "no optimiser": ({k: v for k, v in blob.items() if k != "optim"}, r"another version \(no 'optim' entry\)"),
+    }
+
+
+def test_a_future_or_incomplete_training_checkpoint_is_one_line_on_resume(tiny_run, tmp_path):
+    from daof.io import atomic_save, safe_load
+    from daof.train.__main__ import main as train_main
+
+    blob = safe_load(tiny_run / "checkpoint.pt")
+    for case, (damaged, message) in damaged_checkpoints(blob).items():
+        path = tmp_path / f"{case}.pt"
+        atomic_save(damaged, path)
+        out = tmp_path / case.replace(" ", "-")
+        with pytest.raises(SystemExit, match=f"^error: checkpoint {path} .*{message}") as error:
+            train_main([*TINY_SLF, f"output_dir={out}", "collector.total_frames=400", f"resume={path}"])
+        assert "\n" not in str(error.value), case
+        assert not (out / "best.pt").exists(), case  # nothing trained
+
+
+def test_a_filter_file_with_a_config_that_is_no_mapping_is_one_line(tiny_run, tmp_path):
+    from daof.filters.learned import load_filter
+    from daof.io import atomic_save, safe_load
+
+    for name in ("best.pt", "checkpoint.pt"):
+        blob = safe_load(tiny_run / name)
+        path = tmp_path / name
+        atomic_save({**blob, "config": 3}, path)
+        with pytest.raises(ValueError, match=f"^{path} is not a learned-filter checkpoint: its 'config' is a int$"):
+            load_filter(path)
+
+
+def test_saving_a_filter_is_atomic(tmp_path, monkeypatch):
+    """A failed write of best.pt leaves the old file whole and no .tmp beside it."""
+    from daof.filters.learned import load_filter
+
+    filt = small_form("SLF")
+    path = tmp_path / "best.pt"
+    filt.save(path, extra={"frames": 1})
+
+    def disk_full(obj, f, *args, **kwargs):
+        Path(f).write_bytes(b"half a file")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        filt.save(path, extra={"frames": 2})
+    monkeypatch.undo()
+    assert [p.name for p in tmp_path.iterdir()] == ["best.pt"]
+    assert load_filter(path).extra == {"frames": 1}

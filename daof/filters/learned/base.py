@@ -33,6 +33,7 @@ from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
 from daof.filters.learned.config import MISSING_FILLS
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
+from daof.io import atomic_save
 
 if TYPE_CHECKING:
     from daof.filters.learned.config import FilterConfig
@@ -428,12 +429,11 @@ class LearnedFilter(nn.Module, Filter):
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         """One file of tensors and plain data: config, weights and normalisation (plus ``extra`` metadata).
 
-        ``load_filter`` reads it back with ``torch.load(weights_only=True)``.
+        Written atomically (``daof.io.atomic_save``): a failed write leaves the old file and no
+        temporary one. ``load_filter`` reads it back with ``torch.load(weights_only=True)``.
         """
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         blob = {"config": asdict(self.config), "state_dict": self.state_dict(), "extra": plain_data(extra or {})}
-        torch.save(blob, path)
+        atomic_save(blob, path)
 
 
 class UpdateFilter(LearnedFilter):
