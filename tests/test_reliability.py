@@ -179,6 +179,44 @@ def test_the_report_shows_diverged_runs_and_bound_hits(veh, tmp_path):
     assert "above 10x PF-oracle's RMSE on the same run" in text
 
 
+# ----------------------------------------------------------------- veh2dof and linear parameters
+@pytest.mark.parametrize(
+    "system, override, message",
+    [
+        ("veh2dof", {"mu": -0.9}, "mu must be > 0, got -0.9"),
+        ("veh2dof", {"mu": float("nan")}, "mu must be finite, got nan"),
+        ("veh2dof", {"m": -1500.0}, "m must be > 0"),
+        ("veh2dof", {"dt": 0.0}, "dt must be > 0"),
+        ("veh2dof", {"vx": 0.0}, "vx must be > 0"),
+        ("veh2dof", {"prior_std": (0.0, 0.0)}, "prior_std must be > 0"),
+        ("veh2dof", {"mixture_weights": (1.2, -0.2)}, "mixture_weights must be non-negative weights summing to 1"),
+        ("veh2dof", {"mismatch_mu": (1.0, 0.7)}, r"mismatch_mu must be a range \(low, high\) with low <= high"),
+        ("veh2dof", {"outlier_prob": 1.5}, r"outlier_prob must be in \[0, 1\]"),
+        ("linear", {"omega": -1.0}, "omega must be > 0"),
+        ("linear", {"dt": -0.05}, "dt must be > 0"),
+        ("linear", {"process_std": (0.01, float("inf"))}, "process_std must be finite"),
+        ("linear", {"zeta": -0.1}, "zeta must be >= 0"),
+        ("linear", {"force_period_s": (6.0, 2.0)}, "force_period_s must be a range"),
+    ],
+)
+def test_physical_parameters_are_checked_in_one_line(system, override, message):
+    with pytest.raises(ValueError, match=message) as error:
+        make_system(system, **override)
+    assert "\n" not in str(error.value)
+
+
+def test_training_with_a_bad_physical_override_exits_with_one_line_before_any_work(tmp_path):
+    """``python -m daof.train overrides.mu=-0.9`` trained and exited 0."""
+    import subprocess
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "daof.train", "filter=slf", "overrides.mu=-0.9", f"output_dir={out}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert done.stderr.strip().splitlines() == ["error: mu must be > 0, got -0.9"]
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------- veh14dof parameters
 @pytest.mark.parametrize(
     "override, message",
@@ -383,3 +421,45 @@ def test_saving_a_filter_is_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert [p.name for p in tmp_path.iterdir()] == ["best.pt"]
     assert load_filter(path).extra == {"frames": 1}
+
+
+def test_stopping_the_experiment_parent_stops_its_trainings(tmp_path):
+    """SIGTERM to the process running ``run_jobs`` terminates the trainings it launched (they kept running)."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    trainer = tmp_path / "trainer.py"
+    trainer.write_text(
+        "import os, pathlib, sys, time\n"
+        f"pathlib.Path({str(tmp_path / 'child.pid')!r}).write_text(str(os.getpid()))\n"
+        "time.sleep(120)\n"
+    )
+    parent = tmp_path / "parent.py"
+    parent.write_text(
+        "import sys\n"
+        "from daof.experiments.jobs import TrainingJob, run_jobs\n"
+        f"job = TrainingJob('SLF', __import__('pathlib').Path({str(tmp_path / 'slf')!r}), 100, ['filter=slf'],\n"
+        f"                  launcher=[sys.executable, {str(trainer)!r}])\n"
+        "run_jobs([job], parallel=1)\n"
+    )
+    proc = subprocess.Popen([sys.executable, str(parent)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    pid_file = tmp_path / "child.pid"
+    deadline = time.monotonic() + 120
+    while not pid_file.is_file() or not pid_file.read_text():
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.2)
+    child = int(pid_file.read_text())
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    time.sleep(0.5)
+    try:
+        with pytest.raises(ProcessLookupError):
+            os.kill(child, 0)  # gone (terminated and reaped by the parent)
+        assert proc.returncode != 0 and "stopped by SIGTERM" in err
+    finally:  # a failing run leaves no sleeping trainer behind
+        try:
+            os.kill(child, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
