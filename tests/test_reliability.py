@@ -364,7 +364,7 @@ def damaged_checkpoints(blob: dict) -> dict:
     config, training = blob["config"], blob["training"]
     return {
         "future key": ({**blob, "config": {**config, "future_option": 3}}, "config key 'future_option', which this"),
-        "missing key": ({**blob, "config": {k: v for k, v in config.items() if k != "window"}}, "no config key 'window'"),
+        "missing key": ({**blob, "config": {k: v for k, v in config.items() if k != "window"}}, "no config key 'wind"),
         "no config": ({k: v for k, v in blob.items() if k != "config"}, "cannot be resumed: it has no config"),
         "config not a mapping": ({**blob, "config": 3}, "its config is a int, not a mapping"),
         "no filter": ({k: v for k, v in blob.items() if k != "filter"}, "cannot be resumed: it has no filter"),
