@@ -463,3 +463,24 @@ def test_stopping_the_experiment_parent_stops_its_trainings(tmp_path):
             os.kill(child, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+def test_a_report_write_that_fails_leaves_the_old_files_whole(veh, tmp_path, monkeypatch):
+    from daof.evaluate.report import write_report
+    from daof.evaluate.study import run_study
+
+    study = run_study(veh, {"EKF": EKF(veh)}, runs=2, steps=20, seed=0, measure_cost=False, log=lambda *_: None)
+    write_report(study, tmp_path, title="t", profile="tiny")
+    before = {name: (tmp_path / name).read_text() for name in ("results.json", "results.csv", "report.md")}
+    real = Path.write_text
+
+    def disk_full(self, text, *args, **kwargs):
+        real(self, text[: len(text) // 2])
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        write_report(study, tmp_path, title="another title", profile="tiny")
+    monkeypatch.undo()
+    assert {name: (tmp_path / name).read_text() for name in before} == before
+    assert not list(tmp_path.glob("*.tmp"))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 import os
@@ -24,6 +25,7 @@ import torch
 from daof.evaluate import figures
 from daof.evaluate.metrics import DIVERGENCE_FACTOR, paired_rmse_ratio
 from daof.evaluate.study import ORACLE
+from daof.io import atomic_write_text
 
 __all__ = [
     "Layout",
@@ -405,7 +407,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
         payload["requirements"] = [dataclasses.asdict(r) for r in spec.requirements]
     if paired:
         payload["paired_with"] = {"reference": layout.paired_with, "filters": paired}
-    (out / "results.json").write_text(json.dumps(payload, indent=2))
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=2))
     _write_csv(study, out / "results.csv", units if scale is not None else None)
     figs = _figures(study, out, spec, units, scale)
 
@@ -419,7 +421,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
         lines += ["## Notes", "", *[f"- {n}" for n in spec.notes], ""]
     lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
     lines += _provenance_lines(info, spec.meta)
-    (out / "report.md").write_text("\n".join(lines))
+    atomic_write_text(out / "report.md", "\n".join(lines))
     return out / "report.md"
 
 
@@ -428,21 +430,22 @@ def _write_csv(study, path: Path, units) -> None:
     s = study.system
     names = s.state_names
     rmse = [f"rmse_{n}" for n in names] if units is None else [f"rmse_{n} [{u}]" for n, u in zip(names, units)]
-    with path.open("w", newline="") as fh:
-        writer = csv.writer(fh)
+    fh = io.StringIO()  # written whole, then renamed into place
+    writer = csv.writer(fh)
+    writer.writerow(
+        ["filter"]
+        + rmse
+        + [f"ratio_{n}" for n in names]
+        + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
+        + [f"saturated_{n}" for n in names]
+    )
+    for name, r in study.results.items():
+        ratio = r.ratio_to_oracle or [None] * s.state_dim
+        saturated = r.saturated or [None] * s.state_dim
         writer.writerow(
-            ["filter"]
-            + rmse
-            + [f"ratio_{n}" for n in names]
-            + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
-            + [f"saturated_{n}" for n in names]
+            [name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs, *saturated]
         )
-        for name, r in study.results.items():
-            ratio = r.ratio_to_oracle or [None] * s.state_dim
-            saturated = r.saturated or [None] * s.state_dim
-            writer.writerow(
-                [name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs, *saturated]
-            )
+    atomic_write_text(path, fh.getvalue())
 
 
 def _figures(study, out: Path, spec: ReportSpec, units, scale) -> dict[str, Path]:
@@ -613,10 +616,7 @@ def write_scenario_report(
         "studies": {
             sc: {
                 "reference": st.reference,
-                "filters": {
-                    n: {k: getattr(r, k) for k in _SCENARIO_FIELDS}
-                    for n, r in st.results.items()
-                },
+                "filters": {n: {k: getattr(r, k) for k in _SCENARIO_FIELDS} for n, r in st.results.items()},
             }
             for sc, st in studies.items()
         },
@@ -624,17 +624,18 @@ def write_scenario_report(
         "reports": links,
         **info,
     }
-    (out / "results.json").write_text(json.dumps(payload, indent=2))
-    with (out / "results.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(
-            ["scenario", "filter", *(f"rmse_{n}" for n in s.state_names), *(f"ratio_{n}" for n in s.state_names)]
-            + ["cost_ms", "diverged"]
-        )
-        for sc, st in studies.items():
-            for n, r in st.results.items():
-                ratio = r.ratio_to_oracle or [None] * s.state_dim
-                writer.writerow([sc, n, *r.rmse, *ratio, r.cost_ms, r.diverged])
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=2))
+    fh = io.StringIO()  # written whole, then renamed into place
+    writer = csv.writer(fh)
+    writer.writerow(
+        ["scenario", "filter", *(f"rmse_{n}" for n in s.state_names), *(f"ratio_{n}" for n in s.state_names)]
+        + ["cost_ms", "diverged"]
+    )
+    for sc, st in studies.items():
+        for n, r in st.results.items():
+            ratio = r.ratio_to_oracle or [None] * s.state_dim
+            writer.writerow([sc, n, *r.rmse, *ratio, r.cost_ms, r.diverged])
+    atomic_write_text(out / "results.csv", fh.getvalue())
     rmse = {sc: {n: r.rmse for n, r in st.results.items()} for sc, st in studies.items()}
     figure = figures.plot_scenario_rmse(rmse, s.state_names, s.state_units, out / "rmse_by_scenario.png")
 
@@ -685,7 +686,7 @@ def write_scenario_report(
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     lines += ["## Figures", "", f"![RMSE per scenario]({figure.name})", ""]
     lines += _provenance_lines(info, meta)
-    (out / "report.md").write_text("\n".join(lines))
+    atomic_write_text(out / "report.md", "\n".join(lines))
     return out / "report.md"
 
 
