@@ -28,13 +28,14 @@ import dataclasses
 import fcntl
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import torch
 from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem, SystemWrapper
 from tensordict import TensorDict
+
+from daof.io import atomic_save, safe_load
 
 __all__ = ["RecordedSystem", "cache_key", "cached_simulate", "find_recorded"]
 
@@ -88,17 +89,25 @@ def cached_simulate(
     with open(path.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            if path.is_file():
-                blob = torch.load(path, weights_only=True)
-                if blob.get("key") == key:
-                    return TensorDict(blob["data"], batch_size=[runs, steps]).to(device)
+            blob = _read_memo(path)
+            if blob is not None and blob.get("key") == key:
+                return TensorDict(blob["data"], batch_size=[runs, steps]).to(device)
             data = system.simulate(runs, steps, seed, device=device)
-            tmp = path.with_suffix(f".tmp{os.getpid()}")
-            torch.save({"key": key, "data": {k: v.cpu() for k, v in data.items()}}, tmp)
-            os.replace(tmp, path)
+            atomic_save({"key": key, "data": {k: v.cpu() for k, v in data.items()}}, path)
             return data
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _read_memo(path: Path) -> dict | None:
+    """A memoised simulation, or None if there is none or it does not read (truncated, foreign: simulated again)."""
+    if not path.is_file():
+        return None
+    try:
+        blob = safe_load(path)
+    except ValueError:
+        return None
+    return blob if isinstance(blob, dict) and isinstance(blob.get("data"), dict) else None
 
 
 class RecordedSystem(SystemWrapper):

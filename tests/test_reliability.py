@@ -484,3 +484,27 @@ def test_a_report_write_that_fails_leaves_the_old_files_whole(veh, tmp_path, mon
     monkeypatch.undo()
     assert {name: (tmp_path / name).read_text() for name in before} == before
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_damaged_memoised_simulation_is_simulated_again(tmp_path, monkeypatch):
+    """A truncated or foreign file in the simulation cache was a torch traceback on every later read."""
+    from daof.envs.recorded import cached_simulate
+
+    lin = make_system("linear")
+    first = cached_simulate(lin, 3, 5, 42, tmp_path)
+    (path,) = tmp_path.glob("*.pt")
+    for damage in (path.read_bytes()[:200], b"", b"not a checkpoint"):
+        path.write_bytes(damage)
+        again = cached_simulate(lin, 3, 5, 42, tmp_path)
+        assert torch.equal(again["measurement"], first["measurement"])
+        assert torch.equal(cached_simulate(lin, 3, 5, 42, tmp_path)["state"], first["state"])  # now read back
+
+    def disk_full(obj, f, *args, **kwargs):
+        Path(f).write_bytes(b"half a file")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        cached_simulate(lin, 3, 5, 43, tmp_path)
+    monkeypatch.undo()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
