@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import pickle
 import re
+import tempfile
 import warnings
 from collections import OrderedDict
 from collections.abc import Mapping
@@ -26,7 +27,7 @@ try:
 except ImportError:  # numpy < 2
     from numpy.core.multiarray import _reconstruct
 
-__all__ = ["atomic_save", "atomic_write_text", "safe_load", "to_plain"]
+__all__ = ["atomic_save", "atomic_write_text", "safe_load", "to_plain", "writable_directory"]
 
 #: what a checkpoint written before safe loading needs besides plain data: numpy's global
 #: generator state, a uint32 array (with these, ``weights_only`` builds uint32 arrays and nothing else)
@@ -93,6 +94,21 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def writable_directory(path: str | Path, what: str = "directory") -> Path:
+    """Create ``path`` if needed and write a scratch file in it; one ``ValueError`` line if either fails.
+
+    A read-only file system, a missing permission or a path through a file is found before any work.
+    """
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as error:
+        raise ValueError(f"cannot write the {what} {path}: {error.strerror or error}") from None
+    return path
 
 
 def safe_load(path: str | Path, map_location="cpu"):

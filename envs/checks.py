@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 
-__all__ = ["check_params"]
+__all__ = ["as_seed", "check_params"]
 
 
 def _finite(name: str, value) -> list[float]:
@@ -17,6 +18,15 @@ def _finite(name: str, value) -> list[float]:
     if not all(math.isfinite(v) for v in out):
         raise ValueError(f"{name} must be finite, got {value!r}")
     return out
+
+
+def as_seed(value, name: str = "seed") -> int:
+    """``value`` as an int seed; a fractional, non-numeric or boolean one is a ``ValueError`` line, never truncated."""
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value).is_integer():
+        return int(value)  # 3.0: nothing is lost
+    raise ValueError(f"{name} must be an integer, got {value!r}")
 
 
 def check_params(params, positive=(), nonnegative=(), intervals=(), probabilities=(), weights=()) -> None:

@@ -25,6 +25,7 @@ and both states count equally relative to what is achievable.
 from __future__ import annotations
 
 import torch
+from daof.envs.checks import as_seed
 from daof.envs.gaps import MISSING_KEY
 from daof.envs.system import StochasticSystem
 from tensordict import TensorDict, TensorDictBase
@@ -121,7 +122,7 @@ class FilteringEnv(EnvBase):
         )
 
     def _set_seed(self, seed: int | None) -> None:
-        self.rng.manual_seed(int(seed) if seed is not None else 0)
+        self.rng.manual_seed(as_seed(seed) if seed is not None else 0)
 
     # ----------------------------------------------------------------- dynamics
     def _observation(self, reward_per_state: torch.Tensor | None = None) -> dict:

@@ -28,12 +28,14 @@ import dataclasses
 import fcntl
 import hashlib
 import json
-import os
 from pathlib import Path
 
 import torch
+from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem, SystemWrapper
 from tensordict import TensorDict
+
+from daof.io import atomic_save, safe_load
 
 __all__ = ["RecordedSystem", "cache_key", "cached_simulate", "find_recorded"]
 
@@ -60,7 +62,7 @@ def cache_key(system: StochasticSystem, runs: int, steps: int, seed: int, device
         "params": json.loads(json.dumps(_params(system), default=str)),
         "runs": int(runs),
         "steps": int(steps),
-        "seed": int(seed),
+        "seed": as_seed(seed),
         "device": str(torch.device(device)),
     }
 
@@ -87,17 +89,25 @@ def cached_simulate(
     with open(path.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            if path.is_file():
-                blob = torch.load(path, weights_only=True)
-                if blob.get("key") == key:
-                    return TensorDict(blob["data"], batch_size=[runs, steps]).to(device)
+            blob = _read_memo(path)
+            if blob is not None and blob.get("key") == key:
+                return TensorDict(blob["data"], batch_size=[runs, steps]).to(device)
             data = system.simulate(runs, steps, seed, device=device)
-            tmp = path.with_suffix(f".tmp{os.getpid()}")
-            torch.save({"key": key, "data": {k: v.cpu() for k, v in data.items()}}, tmp)
-            os.replace(tmp, path)
+            atomic_save({"key": key, "data": {k: v.cpu() for k, v in data.items()}}, path)
             return data
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _read_memo(path: Path) -> dict | None:
+    """A memoised simulation, or None if there is none or it does not read (truncated, foreign: simulated again)."""
+    if not path.is_file():
+        return None
+    try:
+        blob = safe_load(path)
+    except ValueError:
+        return None
+    return blob if isinstance(blob, dict) and isinstance(blob.get("data"), dict) else None
 
 
 class RecordedSystem(SystemWrapper):
@@ -117,7 +127,7 @@ class RecordedSystem(SystemWrapper):
         if int(runs) < 1 or int(steps) < 1:
             raise ValueError(f"a bank needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
         super().__init__(base)
-        self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), int(seed)
+        self.bank_runs, self.bank_steps, self.bank_seed = int(runs), int(steps), as_seed(seed)
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self._bank: TensorDict | None = None
         #: bank episodes still to be dealt in the current pass (refilled with a fresh shuffle)

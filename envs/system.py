@@ -21,6 +21,7 @@ import copy
 
 import numpy as np
 import torch
+from daof.envs.checks import as_seed
 from daof.envs.noise import GaussianNoise, Noise
 from tensordict import TensorDict
 
@@ -117,6 +118,24 @@ class StochasticSystem:
         with torch.no_grad():
             return getattr(twin, fn)(x, u).numpy()
 
+    # ----------------------------------------------------------------- divergence
+    #: an estimate more than this many widths (high − low) of the plausible range beyond either end
+    #: of it has diverged: the range widened by its own width on each side, three times as wide
+    divergence_margin: float = 1.0
+
+    def divergence_limits(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(low, high) per state beyond which an estimate has diverged: ``state_low/high`` ∓ margin · width."""
+        low, high = self.state_low.double(), self.state_high.double()
+        width = high - low
+        return low - self.divergence_margin * width, high + self.divergence_margin * width
+
+    def diverged_runs(self, estimates: torch.Tensor) -> torch.Tensor:
+        """Runs [runs] (bool) of ``estimates [runs, steps, n]`` with a non-finite estimate or one past the limits."""
+        low, high = (v.to(estimates.device) for v in self.divergence_limits())
+        x = estimates.double()
+        inside = (x >= low) & (x <= high)  # False for NaN
+        return ~inside.flatten(1).all(-1)
+
     # ----------------------------------------------------------------- uncertain model parameters
     def uncertain_parameters(self) -> dict[str, tuple[float, float]]:
         """Model parameters the scenario draws per run, as ``name -> (low, high)`` of a uniform prior.
@@ -198,7 +217,7 @@ class StochasticSystem:
         """
         if runs < 1 or steps < 1:
             raise ValueError(f"simulate needs runs >= 1 and steps >= 1, got runs={runs}, steps={steps}")
-        generator = torch.Generator(device=device).manual_seed(int(seed))
+        generator = torch.Generator(device=device).manual_seed(as_seed(seed))
         sim = self.reset_episode(runs, generator, device)
         frames = []
         for _ in range(steps):

@@ -18,6 +18,7 @@ from daof.evaluate.metrics import count_diverged, paired_rmse_ratio, per_run_rms
 from daof.evaluate.study import FilterResult, _add_oracle_metrics
 from daof.experiments.experiment import main, plan_experiment
 from daof.experiments.runner import command_line
+from daof.io import atomic_save
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = "recipes/veh2dof/experiment.py"
@@ -472,7 +473,7 @@ def test_a_run_of_another_config_is_set_aside_not_reused(tmp_path):
     job = TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf", "window=4"])
     job.output_dir.mkdir()
     (job.output_dir / "summary.json").write_text(json.dumps({"frames": 100}))
-    (job.output_dir / "best.pt").write_bytes(b"")
+    atomic_save({"state_dict": {}}, job.output_dir / "best.pt")  # readable: a truncated one is test_reliability's
     assert not job.finished()  # no record of its config: not trusted
     (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config))
     assert job.finished() and job.set_aside_if_stale() is None
@@ -516,7 +517,8 @@ def test_the_config_a_job_asks_for_is_pinned_when_it_starts(tmp_path, monkeypatc
         "import json, sys, pathlib\n"
         "out = pathlib.Path([a for a in sys.argv if a.startswith('output_dir=')][0].split('=', 1)[1])\n"
         f"(out / {RUN_CONFIG!r}).write_text(pathlib.Path({str(tmp_path / 'pinned.json')!r}).read_text())\n"
-        "(out / 'summary.json').write_text(json.dumps({'frames': 100})); (out / 'best.pt').write_bytes(b'')\n"
+        "(out / 'summary.json').write_text(json.dumps({'frames': 100}))\n"
+        "import torch; torch.save({}, out / 'best.pt')\n"
     )
     job = jobs.TrainingJob("SLF", tmp_path / "slf", 100, ["filter=slf"], launcher=[sys.executable, str(script)])
     (tmp_path / "pinned.json").write_text(json.dumps(job.requested_config))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
+from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem
 
 __all__ = ["Dropout", "apply_dropout", "dropout_mask"]
@@ -53,7 +54,7 @@ def dropout_mask(
     runs, steps, dim = shape
     if not 0.0 <= p <= 1.0:
         raise ValueError(f"dropout probability p must be in [0, 1], got {p}")
-    generator = torch.Generator().manual_seed(int(seed))
+    generator = torch.Generator().manual_seed(as_seed(seed, "dropout seed"))
     mask = torch.rand(runs, steps, dim, generator=generator) < p
     if blackout is not None:
         channel, start_s, duration_s = blackout
@@ -108,6 +109,9 @@ class Dropout:
     blackout: Blackout | None = ("yaw_rate", 4.0, 1.0)
     seed: int = 0
 
+    def __post_init__(self):
+        as_seed(self.seed, "dropout seed")
+
     def apply(self, data: TensorDictBase, system: StochasticSystem) -> TensorDictBase:
         """``apply_dropout`` with the system's step and channel names."""
         return apply_dropout(
@@ -120,4 +124,4 @@ class Dropout:
         if self.blackout is not None:
             channel, start_s, duration_s = self.blackout
             blackout = {"channel": channel, "start_s": float(start_s), "duration_s": float(duration_s)}
-        return {"p": float(self.p), "blackout": blackout, "seed": int(self.seed)}
+        return {"p": float(self.p), "blackout": blackout, "seed": as_seed(self.seed, "dropout seed")}

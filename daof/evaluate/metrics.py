@@ -6,7 +6,7 @@ import numpy as np
 import torch
 from scipy.stats import bootstrap
 
-__all__ = ["pooled_rmse", "per_run_rmse", "count_diverged", "paired_rmse_ratio"]
+__all__ = ["pooled_rmse", "per_run_rmse", "diverged_runs", "count_diverged", "paired_rmse_ratio", "DIVERGENCE_FACTOR"]
 
 
 def _check(estimates: torch.Tensor, truth: torch.Tensor) -> None:
@@ -33,12 +33,35 @@ def per_run_rmse(estimates: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return (estimates.double() - truth.double()).pow(2).mean(1).sqrt()
 
 
-def count_diverged(run_rmse: torch.Tensor, oracle_rmse: torch.Tensor | None = None, factor: float = 10.0) -> int:
-    """Runs whose RMSE is non-finite or, given the oracle's pooled RMSE, above ``factor``× it."""
+#: a run whose RMSE on some state is above this multiple of the reference's RMSE on that run has diverged
+DIVERGENCE_FACTOR = 10.0
+
+
+def diverged_runs(
+    run_rmse: torch.Tensor,
+    reference_rmse: torch.Tensor | None = None,
+    factor: float = DIVERGENCE_FACTOR,
+    implausible: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Which runs [runs] (bool) diverged: non-finite RMSE, RMSE above ``factor``× the reference's, or ``implausible``.
+
+    ``run_rmse`` is [runs, states]; ``reference_rmse`` the reference's RMSE per run [runs, states]
+    (or pooled, [states]); ``implausible`` a [runs] mask of runs with an estimate outside the
+    system's plausible range (``StochasticSystem.diverged_runs``).
+    """
     bad = ~torch.isfinite(run_rmse).all(-1)
-    if oracle_rmse is not None:
-        bad |= (run_rmse > factor * oracle_rmse.to(run_rmse)).any(-1)
-    return int(bad.sum())
+    if reference_rmse is not None:
+        bad |= (run_rmse > factor * reference_rmse.to(run_rmse)).any(-1)
+    if implausible is not None:
+        bad |= implausible.to(bad.device)
+    return bad
+
+
+def count_diverged(
+    run_rmse: torch.Tensor, oracle_rmse: torch.Tensor | None = None, factor: float = DIVERGENCE_FACTOR
+) -> int:
+    """How many runs ``diverged_runs`` flags (non-finite, or above ``factor``× the oracle's RMSE)."""
+    return int(diverged_runs(run_rmse, oracle_rmse, factor).sum())
 
 
 def paired_rmse_ratio(

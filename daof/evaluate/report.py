@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 import os
@@ -22,8 +23,9 @@ from pathlib import Path
 import torch
 
 from daof.evaluate import figures
-from daof.evaluate.metrics import paired_rmse_ratio
+from daof.evaluate.metrics import DIVERGENCE_FACTOR, paired_rmse_ratio
 from daof.evaluate.study import ORACLE
+from daof.io import atomic_write_text
 
 __all__ = [
     "Layout",
@@ -255,24 +257,52 @@ def ratio_label(study) -> str:
     return f"ratio to {ref}"
 
 
-def _reference_lines(study) -> list[str]:
-    """One sentence under the results table on what the ratios and the diverged count compare with."""
-    ref = getattr(study, "reference", None)
-    if ref is None:
+def _divergence_sentence(study, ref: str | None) -> str:
+    """What the diverged count counts (``daof.evaluate.study._add_oracle_metrics``), with the system's limits."""
+    s = study.system
+    low, high = s.divergence_limits()
+    limits = ", ".join(f"{n} [{lo:.3g}, {hi:.3g}] {u}" for n, u, lo, hi in zip(s.state_names, s.state_units, low, high))
+    text = (
+        "a diverged run has a non-finite estimate, or one outside the plausible state range widened by its width "
+        f"on each side ({limits})"
+    )
+    if ref is not None:
+        text += f", or an RMSE above {DIVERGENCE_FACTOR:g}x {ref}'s RMSE on the same run"
+    return text + "."
+
+
+def _saturation_sentence(study) -> list[str]:
+    """What the bound column counts, when some filter has bounds (the learned filters)."""
+    if not any(r.saturated is not None for r in study.results.values()):
         return []
+    return [
+        "At a bound: per state, the share of a learned filter's estimates at an end of its output range (the "
+        "plausible state range it is clamped or squashed to; within 1e-6 of the range's width); – for filters "
+        "without bounds.",
+        "",
+    ]
+
+
+def _reference_lines(study) -> list[str]:
+    """Sentences under the results table: what the ratios, the diverged count and the bound column compare with."""
+    ref = getattr(study, "reference", None)
+    lines = _saturation_sentence(study)
+    if ref is None:
+        return ["In the diverged count, " + _divergence_sentence(study, None), "", *lines]
     if ref == ORACLE and study.system.scenario != "nominal":
         return [
             f"Scenario `{study.system.scenario}`: the PF-oracle is the near-optimal reference only on `nominal`. "
             "Here it filters with the nominal model like every model-based filter, so the ratios are relative "
-            "to the nominal-model PF-oracle (a ratio below 1 is possible), not to the optimum; a diverged run "
-            "has a non-finite estimate or an RMSE above 10x its pooled RMSE.",
+            "to the nominal-model PF-oracle (a ratio below 1 is possible), not to the optimum; "
+            + _divergence_sentence(study, ref),
             "",
+            *lines,
         ]
-    return [
-        f"Ratios are per state, relative to {ref}; a diverged run has a non-finite estimate or an RMSE above 10x "
-        f"{ref}'s pooled RMSE.",
-        "",
-    ]
+    return [f"Ratios are per state, relative to {ref}; " + _divergence_sentence(study, ref), "", *lines]
+
+
+def _saturated(r) -> str:
+    return _fmt(r.saturated, 3) if r.saturated is not None else "–"
 
 
 def _results_table(study) -> list[str]:
@@ -281,8 +311,8 @@ def _results_table(study) -> list[str]:
     lines = [
         f"| filter | RMSE {states} | {ratio_label(study)} ({' / '.join(s.state_names)}) "
         "| per-run RMSE median (IQR) | cost per estimate [ms] (batch 1) | throughput [estimates/s] (batch R) "
-        "| diverged runs | covariance repairs |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| diverged runs | covariance repairs | at a bound ({' / '.join(s.state_names)}) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in study.results.items():
         runs = torch.tensor(r.per_run_rmse)
@@ -291,10 +321,13 @@ def _results_table(study) -> list[str]:
         cost = f"{r.cost_ms:.3f}" if r.cost_ms is not None else "–"
         lines.append(
             f"| {name} | {_fmt(r.rmse)} | {_fmt(r.ratio_to_oracle, 3)} | {spread} | {cost} | "
-            f"{r.throughput_per_s:,.0f} | {r.diverged} | {r.repairs} |"
+            f"{r.throughput_per_s:,.0f} | {r.diverged} | {r.repairs} | {_saturated(r)} |"
         )
     return lines
 
+
+#: the fields of each filter in the scenario report's results.json
+_SCENARIO_FIELDS = ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "diverged_runs", "repairs", "saturated")
 
 #: bootstrap resamples of the report's paired comparison
 PAIRED_DRAWS = 4000
@@ -378,7 +411,7 @@ def _state_columns_table(study, units) -> list[str]:
     """The paper's Table II layout: one RMSE column per state, then cost; per-run spread below.
 
     The ratio-to-oracle column appears only if some filter has one (no oracle on model-free
-    systems); without an oracle a diverged run is a non-finite one.
+    systems); without one a diverged run is one with an estimate non-finite or outside the plausible range.
     """
     s = study.system
     results = study.results
@@ -387,14 +420,16 @@ def _state_columns_table(study, units) -> list[str]:
     head = ["filter", *(f"RMSE {n} [{u}]" for n, u in zip(s.state_names, units))]
     head += [ratio_label(study)] if has_ratio else []
     head += ["cost per estimate [ms] (batch 1)", "throughput [estimates/s] (batch R)"]
-    head += ["diverged runs" if has_ratio else "diverged runs (non-finite)"]
+    head += ["diverged runs"]
     head += ["covariance repairs"] if has_repairs else []
+    head += [f"at a bound ({' / '.join(s.state_names)})"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         row = [name, *(f"{v:.4g}" for v in r.rmse)]
         row += [_fmt(r.ratio_to_oracle, 3)] if has_ratio else []
         row += [f"{r.cost_ms:.3f}" if r.cost_ms is not None else "–", f"{r.throughput_per_s:,.0f}", str(r.diverged)]
         row += [str(r.repairs)] if has_repairs else []
+        row += [_saturated(r)]
         lines.append("| " + " | ".join(row) + " |")
     lines += [
         "",
@@ -441,7 +476,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
     spread = seed_spread(study, spec.seeds, paired, layout.paired_with) if spec.seeds else {}
     if spread:
         payload["seeds"] = spread
-    (out / "results.json").write_text(json.dumps(payload, indent=2))
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=2))
     _write_csv(study, out / "results.csv", units if scale is not None else None)
     figs = _figures(study, out, spec, units, scale, paired)
 
@@ -456,7 +491,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
         lines += ["## Notes", "", *[f"- {n}" for n in spec.notes], ""]
     lines += ["## Figures", ""] + [f"![{k}]({p.name})" for k, p in figs.items()] + [""]
     lines += _provenance_lines(info, spec.meta)
-    (out / "report.md").write_text("\n".join(lines))
+    atomic_write_text(out / "report.md", "\n".join(lines))
     return out / "report.md"
 
 
@@ -465,17 +500,22 @@ def _write_csv(study, path: Path, units) -> None:
     s = study.system
     names = s.state_names
     rmse = [f"rmse_{n}" for n in names] if units is None else [f"rmse_{n} [{u}]" for n, u in zip(names, units)]
-    with path.open("w", newline="") as fh:
-        writer = csv.writer(fh)
+    fh = io.StringIO()  # written whole, then renamed into place
+    writer = csv.writer(fh)
+    writer.writerow(
+        ["filter"]
+        + rmse
+        + [f"ratio_{n}" for n in names]
+        + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
+        + [f"saturated_{n}" for n in names]
+    )
+    for name, r in study.results.items():
+        ratio = r.ratio_to_oracle or [None] * s.state_dim
+        saturated = r.saturated or [None] * s.state_dim
         writer.writerow(
-            ["filter"]
-            + rmse
-            + [f"ratio_{n}" for n in names]
-            + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
+            [name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs, *saturated]
         )
-        for name, r in study.results.items():
-            ratio = r.ratio_to_oracle or [None] * s.state_dim
-            writer.writerow([name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs])
+    atomic_write_text(path, fh.getvalue())
 
 
 def _figures(study, out: Path, spec: ReportSpec, units, scale, paired: dict | None = None) -> dict[str, Path]:
@@ -649,10 +689,7 @@ def write_scenario_report(
         "studies": {
             sc: {
                 "reference": st.reference,
-                "filters": {
-                    n: {k: getattr(r, k) for k in ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "repairs")}
-                    for n, r in st.results.items()
-                },
+                "filters": {n: {k: getattr(r, k) for k in _SCENARIO_FIELDS} for n, r in st.results.items()},
             }
             for sc, st in studies.items()
         },
@@ -660,17 +697,18 @@ def write_scenario_report(
         "reports": links,
         **info,
     }
-    (out / "results.json").write_text(json.dumps(payload, indent=2))
-    with (out / "results.csv").open("w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(
-            ["scenario", "filter", *(f"rmse_{n}" for n in s.state_names), *(f"ratio_{n}" for n in s.state_names)]
-            + ["cost_ms", "diverged"]
-        )
-        for sc, st in studies.items():
-            for n, r in st.results.items():
-                ratio = r.ratio_to_oracle or [None] * s.state_dim
-                writer.writerow([sc, n, *r.rmse, *ratio, r.cost_ms, r.diverged])
+    atomic_write_text(out / "results.json", json.dumps(payload, indent=2))
+    fh = io.StringIO()  # written whole, then renamed into place
+    writer = csv.writer(fh)
+    writer.writerow(
+        ["scenario", "filter", *(f"rmse_{n}" for n in s.state_names), *(f"ratio_{n}" for n in s.state_names)]
+        + ["cost_ms", "diverged"]
+    )
+    for sc, st in studies.items():
+        for n, r in st.results.items():
+            ratio = r.ratio_to_oracle or [None] * s.state_dim
+            writer.writerow([sc, n, *r.rmse, *ratio, r.cost_ms, r.diverged])
+    atomic_write_text(out / "results.csv", fh.getvalue())
     rmse = {sc: {n: r.rmse for n, r in st.results.items()} for sc, st in studies.items()}
     figure = figures.plot_scenario_rmse(rmse, s.state_names, s.state_units, out / "rmse_by_scenario.png")
 
@@ -721,7 +759,7 @@ def write_scenario_report(
         lines += ["## Notes", "", *[f"- {n}" for n in notes], ""]
     lines += ["## Figures", "", f"![RMSE per scenario]({figure.name})", ""]
     lines += _provenance_lines(info, meta)
-    (out / "report.md").write_text("\n".join(lines))
+    atomic_write_text(out / "report.md", "\n".join(lines))
     return out / "report.md"
 
 

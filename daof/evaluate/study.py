@@ -22,7 +22,7 @@ from tensordict import TensorDict
 from daof.envs.recorded import cache_key
 from daof.envs.system import StochasticSystem
 from daof.evaluate.dropout import Dropout
-from daof.evaluate.metrics import count_diverged, per_run_rmse, pooled_rmse
+from daof.evaluate.metrics import DIVERGENCE_FACTOR, diverged_runs, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
 from daof.io import atomic_save, safe_load
 
@@ -42,6 +42,10 @@ class FilterResult:
     throughput_per_s: float
     diverged: int = 0
     repairs: int = 0
+    #: the runs counted in ``diverged`` (``_add_oracle_metrics``)
+    diverged_runs: list[int] = field(default_factory=list)
+    #: per state, the fraction of estimates at a bound of a learned filter's output; None: no bounds
+    saturated: list[float] | None = None
     ratio_to_oracle: list[float] | None = None
     wall_s: float = 0.0
     extra: dict = field(default_factory=dict)
@@ -91,11 +95,13 @@ def _cache_path(cache_dir: Path, name: str, dropout: dict | None = None) -> Path
 def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: bool) -> tuple[FilterResult, torch.Tensor]:
     rate, estimates, wall = throughput(filt, data)
     truth = data["state"]
+    # the stats of the study's run: timing at batch 1 below runs the filter again
+    stats = dict(getattr(filt, "stats", {}) or {})
     cost = None
     if measure_cost:
         with threads(timing_threads):
             cost = cost_per_estimate(filt, data)
-    stats = getattr(filt, "stats", {}) or {}
+    saturated = stats.get("saturated")
     result = FilterResult(
         rmse=pooled_rmse(estimates, truth).tolist(),
         per_run_rmse=per_run_rmse(estimates, truth).tolist(),
@@ -103,6 +109,7 @@ def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: boo
         threads=timing_threads,
         throughput_per_s=rate,
         repairs=int(stats.get("repairs", 0)),
+        saturated=[float(v) for v in saturated] if saturated is not None else None,
         wall_s=wall,
         extra={k: v for k, v in stats.items() if k != "repairs" and isinstance(v, (int, float, str))},
     )
@@ -162,7 +169,7 @@ def run_study(
         log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s")
         if path is not None:
             atomic_save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
-    _add_oracle_metrics(results, reference)
+    _add_oracle_metrics(results, reference, estimates, system)
     ref = reference if reference in results else None
     return Study(system, runs, steps, seed, data, results, estimates, dropout=dropout_info, reference=ref)
 
@@ -179,12 +186,27 @@ def _read_cache(path: Path, log) -> dict | None:
     return blob if isinstance(blob, dict) and {"key", "result", "estimates"} <= blob.keys() else None
 
 
-def _add_oracle_metrics(results: dict[str, FilterResult], reference: str = ORACLE) -> None:
-    """Ratio to the reference (PF-oracle) per state and diverged-run counts (10× its RMSE)."""
+def _add_oracle_metrics(
+    results: dict[str, FilterResult],
+    reference: str = ORACLE,
+    estimates: dict[str, torch.Tensor] | None = None,
+    system: StochasticSystem | None = None,
+) -> None:
+    """Ratio to the reference (PF-oracle) per state, and every filter's diverged runs.
+
+    A run has diverged when an estimate is non-finite or outside the system's
+    ``divergence_limits`` (with ``estimates`` and ``system``), or when its RMSE on some state is
+    above ``DIVERGENCE_FACTOR`` (10)× the reference's RMSE on the same run.
+    """
     oracle = results.get(reference)
     oracle_rmse = torch.tensor(oracle.rmse, dtype=torch.float64) if oracle is not None else None
-    for r in results.values():
+    oracle_runs = torch.tensor(oracle.per_run_rmse, dtype=torch.float64) if oracle is not None else None
+    for name, r in results.items():
         run_rmse = torch.tensor(r.per_run_rmse, dtype=torch.float64)
-        r.diverged = count_diverged(run_rmse, oracle_rmse)
+        implausible = None
+        if estimates is not None and system is not None and name in estimates:
+            implausible = system.diverged_runs(estimates[name])
+        mask = diverged_runs(run_rmse, oracle_runs, DIVERGENCE_FACTOR, implausible)
+        r.diverged, r.diverged_runs = int(mask.sum()), mask.nonzero().flatten().tolist()
         if oracle_rmse is not None:
             r.ratio_to_oracle = (torch.tensor(r.rmse, dtype=torch.float64) / oracle_rmse).tolist()

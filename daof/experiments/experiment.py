@@ -61,6 +61,7 @@ from daof.experiments.runner import (
     training_costs,
     validation_references,
 )
+from daof.io import writable_directory
 
 __all__ = ["Plan", "ScenarioPlan", "main", "plan_experiment", "run_experiment"]
 
@@ -468,6 +469,8 @@ def main(argv: list[str] | None = None, *, experiment: str | None = None, progra
         experiment = chosen[0]
     try:
         plan = plan_experiment(experiment, overrides, program)
+        for sp in plan.scenarios.values():  # a read-only results root: one line before any work
+            writable_directory(sp.cfg.output_root, "output directory")
     except ValueError as error:
         raise SystemExit(str(error)) from None
     return run_experiment(plan)

@@ -29,6 +29,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
+from daof.io import safe_load
 from daof.train.base import PROGRESS, RUN_CONFIG, comparable_config
 from daof.train.config import compose_config
 
@@ -51,13 +52,25 @@ class TrainingJob:
         return self.output_dir / "summary.json"
 
     def finished(self) -> bool:
-        if not self.summary_path.is_file() or not (self.output_dir / "best.pt").is_file():
+        """Its summary records the budget, its config is the one asked for, and its ``best.pt`` reads.
+
+        A truncated or damaged ``best.pt`` is no finished run: the job resumes from its checkpoint,
+        which writes ``best.pt`` again.
+        """
+        best = self.output_dir / "best.pt"
+        if not self.summary_path.is_file() or not best.is_file():
             return False
         try:
             done = json.loads(self.summary_path.read_text()).get("frames", 0) >= self.total_frames
         except (OSError, ValueError):  # a summary cut short is no finished run
             return False
-        return done and self.config_matches()
+        if not (done and self.config_matches()):
+            return False
+        try:
+            safe_load(best)
+        except ValueError:
+            return False
+        return True
 
     @property
     def arguments(self) -> list[str]:
@@ -206,7 +219,7 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
                     log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
                 else:
                     failed.append(job.name)
-                    why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but no summary or best.pt"
+                    why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but no summary or readable best.pt"
                     log(f"  {job.name}: FAILED ({why}); see {log_path}")
             status.show([job for job, *_ in running])
     finally:

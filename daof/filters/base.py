@@ -18,7 +18,11 @@ __all__ = ["Filter"]
 
 
 class Filter:
-    """Base class. Subclasses implement ``_run`` on validated tensors and fill ``self.stats``."""
+    """Base class. Subclasses implement ``_run`` on validated tensors and fill ``self.stats``.
+
+    ``run`` sets ``stats["diverged"]``: the runs with a non-finite estimate or one outside the
+    system's ``divergence_limits`` (its plausible state range widened by its width on each side).
+    """
 
     name: str = "filter"
 
@@ -31,7 +35,10 @@ class Filter:
         """Estimates x̂_t for t = 1..T of every run -> ``[runs, steps, state_dim]`` on data's device."""
         y, u_prev, u = self.validate(data)
         self.stats = {}
-        return self._run(y, u_prev, u)
+        estimates = self._run(y, u_prev, u)
+        # every filter: a run with a non-finite estimate or one outside the system's divergence limits
+        self.stats["diverged"] = int(self.system.diverged_runs(estimates).sum())
+        return estimates
 
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError

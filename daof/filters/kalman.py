@@ -12,7 +12,8 @@ channels only (the rows S of H or g, R[S, S]), or only predicts if none is prese
 Two numerical rules of the benchmark protocol (docs/design.md): a covariance that is no longer positive definite is
 repaired (symmetrise, add jitter until Cholesky succeeds) and counted in ``stats["repairs"]``; a run
 whose estimate becomes non-finite (or whose algebra fails) is kept, its remaining estimates are NaN,
-and it is counted in ``stats["diverged"]`` — it never stops the study.
+and it is counted in ``stats["diverged"]`` — it never stops the study. So is a run whose estimate leaves the
+system's ``divergence_limits`` (``Filter.run``).
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ Transitions are sampled from the system's true process noise around the nominal 
 from the exact measurement log-density log p(y_t − g(x_t, u_t)), all in log space. The estimate is
 the weighted mean before resampling; resampling is systematic. A NaN measurement channel is
 missing: the weights then use the density of the present channels only, and a step with no
-channel present leaves them unchanged (docs/missing_data.md).
+channel present leaves them unchanged (docs/missing_data.md). A run whose float32 weights no longer
+sum to 1 after normalising (a wild measurement, 1e9) is normalised again in float64 (``_normalise``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import math
 
 import torch
 
+from daof.envs.checks import as_seed
 from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
 
@@ -62,7 +64,7 @@ class ParticleFilter(Filter):
         if resample not in ("ess", "always"):
             raise ValueError(f"resample must be 'ess' or 'always', got {resample!r}")
         self.num_particles = num_particles
-        self.seed = seed
+        self.seed = as_seed(seed)
         self.resample = resample
         self.ess_fraction = ess_fraction
         self.max_elements = max_elements
@@ -100,11 +102,10 @@ class ParticleFilter(Filter):
             # w_t^i ∝ w_{t-1}^i p_ζ(y_t − g(x_t^i, u_t))
             innovation = y[:, t, None, :] - s.g(x, u[:, t, None, :].expand(runs, n, -1))
             if gappy[t]:  # only the present channels: p(y_t[S] | x_t^i) = ∏_{j∈S} p_ζj(innovation_j)
-                log_w = log_w + s.measurement_noise.marginal_log_prob(innovation, present[:, t, None, :])
+                log_p = s.measurement_noise.marginal_log_prob(innovation, present[:, t, None, :])
             else:
-                log_w = log_w + s.measurement_noise.log_prob(innovation)
-            log_w = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-            w = log_w.exp()
+                log_p = s.measurement_noise.log_prob(innovation)
+            log_w, w = _normalise(log_w, log_p)
             estimate = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
             # a run that went non-finite stays NaN (resampling could otherwise revive it)
             diverged |= ~torch.isfinite(estimate).all(-1)
@@ -124,6 +125,30 @@ class ParticleFilter(Filter):
         self.stats["resamples"] += resamples
         self.stats["diverged"] += int(diverged.sum())
         return out
+
+
+#: normalised weights of a run that sum further from 1 than this lost their normalisation in float32
+WEIGHT_SUM_TOLERANCE = 1e-3
+
+
+def _normalise(log_w: torch.Tensor, log_p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised log-weights and weights [runs, N] of ``log_w + log_p`` (both float32).
+
+    In float32; a run whose weights then do not sum to 1 (log-likelihoods of ~-1e10, as a 1e9
+    measurement gives, keep no difference between particles after ``log_w − logsumexp``, so several
+    weights become 1) is normalised again in float64 after subtracting its largest log-weight.
+    Ordinary runs never take that path, so their numbers are those of the float32 filter.
+    """
+    normalised = log_w + log_p
+    normalised = normalised - torch.logsumexp(normalised, -1, keepdim=True)
+    w = normalised.exp()
+    lost = (w.sum(-1) - 1.0).abs() > WEIGHT_SUM_TOLERANCE
+    if lost.any():
+        wide = log_w[lost].double() + log_p[lost].double()
+        wide = wide - wide.amax(-1, keepdim=True)  # the largest is 0: exp never overflows
+        wide = wide - torch.logsumexp(wide, -1, keepdim=True)
+        normalised[lost], w[lost] = wide.float(), wide.exp().float()
+    return normalised, w
 
 
 class _Appended:

@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> None:
             print(OmegaConf.to_yaml(cfg), end="")
             return
         summary = train(cfg)
-    except (ValueError, FileNotFoundError, PermissionError) as error:
+    except (ValueError, OSError) as error:  # OSError: a disk that fills or turns read-only mid-run
         sys.exit(f"error: {error}")
     best = summary["best"].get("record", {})
     rmse = ", ".join(f"{k[5:]}={v:.4g}" for k, v in best.items() if k.startswith("rmse_"))

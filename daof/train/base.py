@@ -24,7 +24,7 @@ from daof.dashboard import log_training_end, training_identity
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
-from daof.io import atomic_write_text
+from daof.io import atomic_write_text, writable_directory
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
 from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
@@ -58,6 +58,27 @@ def comparable_config(config: dict) -> dict:
     return {k: v for k, v in flat(config) if k not in RESUMABLE_CHANGES}
 
 
+#: what every training checkpoint holds (a trainer's own entries are checked as it restores them)
+CHECKPOINT_ENTRIES = ("config", "filter", "rng", "training")
+TRAINING_ENTRIES = ("frames", "updates", "wall", "history", "best", "next_ckpt")
+
+
+def _check_resumable(blob: dict, path) -> None:
+    """One line if a checkpoint lacks what every resume reads (a config that is no mapping, a missing entry)."""
+    missing = [k for k in CHECKPOINT_ENTRIES if k not in blob]
+    missing += [
+        f"training/{k}"
+        for k in TRAINING_ENTRIES
+        if not isinstance(blob.get("training"), dict) or k not in blob["training"]
+    ]
+    if missing:
+        raise ValueError(f"checkpoint {path} cannot be resumed: it has no {', '.join(missing)}")
+    if not isinstance(blob["config"], dict):
+        raise ValueError(
+            f"checkpoint {path} cannot be resumed: its config is a {type(blob['config']).__name__}, not a mapping"
+        )
+
+
 class FilterTrainer:
     """Base of the training runs of the filter kinds in ``kinds`` (``cfg.kind`` says which one)."""
 
@@ -71,10 +92,7 @@ class FilterTrainer:
         torch.set_num_threads(int(cfg.threads))
         torch.manual_seed(int(cfg.seed))
         self.out = Path(cfg.output_dir)
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except PermissionError as error:
-            raise ValueError(f"cannot write the run directory {self.out}: {error.strerror}") from None
+        writable_directory(self.out, "run directory")
         self._lock = None
         self._resumed = False
         self.system = make_system(cfg.system, cfg.scenario, **cfg.overrides)
@@ -184,15 +202,27 @@ class FilterTrainer:
         (``collector.total_frames``), where it is written, the thread count and the logger.
         """
         blob = load_checkpoint(path)
+        _check_resumable(blob, path)
         saved = comparable_config(blob["config"])
         now = comparable_config(OmegaConf.to_container(self.cfg, resolve=True))
         if saved != now:
             diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
             key = diff[0]
+            if key not in now:
+                raise ValueError(f"checkpoint {path} has config key {key!r}, which this version does not know")
+            if key not in saved:
+                raise ValueError(f"checkpoint {path} has no config key {key!r}: incomplete or from another version")
             raise ValueError(f"checkpoint {path} is for {key}={saved.get(key)!r}, this run has {now.get(key)!r}")
         self._lock = lock_run_directory(self.out)  # before the files it restores are touched
         self._resumed = True
-        self.load_state_dict(blob)
+        try:
+            self.load_state_dict(blob)
+        except (KeyError, TypeError, AttributeError, IndexError, RuntimeError) as error:
+            self._release_directory()
+            what = f"no {error.args[0]!r} entry" if isinstance(error, KeyError) else str(error).strip().splitlines()[0]
+            raise ValueError(
+                f"checkpoint {path} cannot be resumed: incomplete or from another version ({what})"
+            ) from None
 
     def save_checkpoint(self) -> Path:
         path = self.out / "checkpoint.pt"

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import torch
+
+from daof.io import atomic_write_text
 
 __all__ = ["rmse_per_state", "write_curve_csv", "plot_learning_curve"]
 
@@ -21,11 +24,11 @@ def write_curve_csv(history: list[dict], path: str | Path) -> None:
     """Write the validation history (one dict per validation) as CSV."""
     if not history:
         return
-    path = Path(path)
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(history[0]))
-        writer.writeheader()
-        writer.writerows(history)
+    fh = io.StringIO()  # written whole, then renamed into place
+    writer = csv.DictWriter(fh, fieldnames=list(history[0]))
+    writer.writeheader()
+    writer.writerows(history)
+    atomic_write_text(path, fh.getvalue())
 
 
 def plot_learning_curve(

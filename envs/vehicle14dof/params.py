@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, fields
 from types import SimpleNamespace
 
 import torch
+from daof.envs.checks import check_params
 from daof.envs.vehicle14dof.tyre import TyreCoeffs, longitudinal_stiffness, prepare
 
 __all__ = ["TyreCoeffs", "Vehicle14DOFParams", "Constants"]
@@ -105,6 +106,37 @@ class Vehicle14DOFParams:
     steer_offset_deg: float = 1.0  # U(±1°)
     accel_bias_std: float = 0.05
     gyro_bias_std: float = 1.75e-3
+
+    def __post_init__(self):
+        check_params(
+            self,
+            positive=("m_s", "m_uf", "m_ur", "l_f", "l_r", "t_f", "t_r", "h_s", "I_xx", "I_yy", "I_zz", "J_w",
+                      "k_sf", "k_sr", "R_e", "k_t", "i_s", "v_eps", "omega_eps", "g", "mu_scale", "h", "dt",
+                      "v0_kmh", "spin_speeds_kmh", "spin_amp_deg", "dist_std_ratio", "gnss_period_steps"),
+            nonnegative=("h_rcf", "h_rcr", "h_pc", "h_u", "c_sf", "c_sr", "K_arbf", "K_arbr", "c_t", "f_r",
+                         "rho_air", "C_d", "A_f", "K_p", "K_i", "t1_s", "t2_s", "amp_min_deg", "amp_margin_deg",
+                         "dist_scale", "wheel_speed_std", "steer_std_deg", "steer_quant_deg", "accel_std",
+                         "gyro_std", "gnss_pos_std", "gnss_vel_std", "wheel_scale_err", "steer_offset_deg",
+                         "accel_bias_std", "gyro_bias_std"),
+            intervals=("v0_kmh", "t1_s", "t2_s"),
+            probabilities=("brake_front",),
+            weights=("dist_weights",),
+        )  # fmt: skip
+        if self.a_cmd_min > self.a_cmd_max:
+            raise ValueError(f"a_cmd_min must be <= a_cmd_max, got {self.a_cmd_min!r} > {self.a_cmd_max!r}")
+        if not isinstance(self.gnss_period_steps, int) or isinstance(self.gnss_period_steps, bool):
+            raise ValueError(f"gnss_period_steps must be a whole number of steps >= 1, got {self.gnss_period_steps!r}")
+        speeds, amps = tuple(self.spin_speeds_kmh), tuple(self.spin_amp_deg)
+        if len(speeds) < 2 or len(speeds) != len(amps) or any(a >= b for a, b in zip(speeds, speeds[1:])):
+            raise ValueError(
+                "spin_speeds_kmh must be >= 2 increasing speeds with one spin_amp_deg each, "
+                f"got {self.spin_speeds_kmh!r} and {self.spin_amp_deg!r}"
+            )
+        if len(self.dist_weights) != 2 or len(self.dist_scale) != 2 or len(self.dist_std_ratio) != 2:
+            raise ValueError("dist_weights, dist_scale and dist_std_ratio must be pairs (two components, two axes)")
+        if not isinstance(self.tyre, TyreCoeffs):
+            raise ValueError(f"tyre must be a TyreCoeffs, got {type(self.tyre).__name__}")
+        check_params(self.tyre, positive=("Fz_nom", "eps_F"))
 
     @property
     def torch_dtype(self) -> torch.dtype:

@@ -33,6 +33,7 @@ from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
 from daof.filters.learned.config import MISSING_FILLS
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
+from daof.io import atomic_save
 
 if TYPE_CHECKING:
     from daof.filters.learned.config import FilterConfig
@@ -41,6 +42,10 @@ __all__ = ["KINDS", "LearnedFilter", "UpdateFilter", "filter_class", "plain_data
 
 #: filter kind -> its class (``register``); DAOF-v2's forms are picked by ``for_config``
 KINDS: dict[str, type[LearnedFilter]] = {}
+
+#: an estimate within this fraction of the output range's width of one of its ends sits at a bound
+#: (a clamp gives the end exactly; tanh is within 1e-6 of ±1 from |loc| ≈ 7.3 on)
+SATURATION_TOLERANCE = 1e-6
 
 
 def register(cls: type[LearnedFilter]) -> type[LearnedFilter]:
@@ -288,6 +293,42 @@ class LearnedFilter(nn.Module, Filter):
             )
 
     # ----------------------------------------------------------------- offline filtering
+    def run(self, data) -> torch.Tensor:
+        """``Filter.run``; then ``stats["saturated"]``, the share per state at a bound (``saturation``)."""
+        estimates = super().run(data)
+        self.stats["saturated"] = self.saturation(estimates).tolist()
+        return estimates
+
+    def saturation(self, estimates: torch.Tensor) -> torch.Tensor:
+        """Per state [n], the share of ``estimates [..., n]`` at an end of the output range (the plausible state range).
+
+        An update filter clamps its estimate there, the others squash onto it; within
+        ``SATURATION_TOLERANCE`` of the range's width counts as at the end.
+        """
+        low, high = self.state_low.to(estimates), self.state_high.to(estimates)
+        tolerance = SATURATION_TOLERANCE * (high - low)
+        at_bound = (estimates <= low + tolerance) | (estimates >= high - tolerance)
+        return at_bound.reshape(-1, estimates.shape[-1]).double().mean(0)
+
+    def validate(self, data) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``Filter.validate``, then cast to the network's dtype (float32): float64 data is accepted.
+
+        Estimates come back in the network's dtype, as the classical filters return their ``dtype``
+        whatever the data's. A finite value too large for that dtype is refused in one line.
+        """
+        checked = super().validate(data)
+        dtype = self.low.dtype
+        cast = tuple(v.to(dtype) for v in checked)
+        for key, before, after in zip(("measurement", "prev_control", "control"), checked, cast):
+            overflow = torch.isfinite(before) & ~torch.isfinite(after)
+            if before.dtype != dtype and overflow.any():
+                where = overflow.nonzero()[0].tolist()
+                raise ValueError(
+                    f"{self.name}: {key!r} at [run, step, channel] = {where} is {before[tuple(where)].item():g}, "
+                    f"beyond the {dtype} range of the network"
+                )
+        return cast
+
     def open_loop_frames(self, y, u, u_prev) -> torch.Tensor:
         """Per-step frames without the fed-back estimate: [y_t, (u_t, u_{t−1}), (missing flags)].
 
@@ -388,12 +429,11 @@ class LearnedFilter(nn.Module, Filter):
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         """One file of tensors and plain data: config, weights and normalisation (plus ``extra`` metadata).
 
-        ``load_filter`` reads it back with ``torch.load(weights_only=True)``.
+        Written atomically (``daof.io.atomic_save``): a failed write leaves the old file and no
+        temporary one. ``load_filter`` reads it back with ``torch.load(weights_only=True)``.
         """
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         blob = {"config": asdict(self.config), "state_dict": self.state_dict(), "extra": plain_data(extra or {})}
-        torch.save(blob, path)
+        atomic_save(blob, path)
 
 
 class UpdateFilter(LearnedFilter):

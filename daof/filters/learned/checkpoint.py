@@ -16,6 +16,9 @@ from daof.io import safe_load
 
 __all__ = ["load_filter"]
 
+#: the entries of a filter file or training checkpoint that are mappings when present
+_MAPPINGS = ("config", "state_dict", "extra", "filter", "filter_config", "training")
+
 
 def _filter_config(fields: dict, path: Path) -> FilterConfig:
     """A stored filter config; one written before options were retired loads if it holds their surviving values."""
@@ -29,6 +32,11 @@ def _filter_config(fields: dict, path: Path) -> FilterConfig:
 
 def _contents(blob, path: Path) -> tuple[FilterConfig, dict, dict, dict]:
     """(config, state dict, extra, system overrides) of a filter file or a training checkpoint."""
+    if isinstance(blob, dict):
+        for key in _MAPPINGS:
+            if not isinstance(blob.get(key) or {}, dict):
+                kind = type(blob[key]).__name__
+                raise ValueError(f"{path} is not a learned-filter checkpoint: its {key!r} is a {kind}")
     if isinstance(blob, dict) and {"config", "state_dict"} <= blob.keys():  # LearnedFilter.save
         config = _filter_config({"gelu_approximate": "none", **blob["config"]}, path)  # older ones: exact GELU
         return config, blob["state_dict"], blob.get("extra", {}), {}
