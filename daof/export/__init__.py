@@ -13,7 +13,7 @@ from pathlib import Path
 
 from daof.export.artifacts import FORMATS, ONNX_OPSET, example_inputs, export_program, write
 from daof.export.contract import CONTRACT_FILE, contract, read_contract, write_contract
-from daof.export.runtime import load_step, stream
+from daof.export.runtime import load_step, stream, trajectory
 from daof.export.step import StreamingStep
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "load_step",
     "read_contract",
     "stream",
+    "trajectory",
     "write",
 ]
 

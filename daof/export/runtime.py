@@ -16,7 +16,7 @@ from daof.export.artifacts import FORMATS
 from daof.export.contract import read_contract
 from daof.export.step import StreamingStep
 
-__all__ = ["load_step", "stream"]
+__all__ = ["load_step", "stream", "trajectory"]
 
 
 def load_step(directory: str | Path, fmt: str, threads: int = 1):
@@ -30,7 +30,14 @@ def load_step(directory: str | Path, fmt: str, threads: int = 1):
     names = [spec["name"] for spec in info["inputs"]]
     if fmt == "onnx":
         return _onnx_step(path, names, threads)
-    module = torch.export.load(path).module() if fmt == "torch" else torch._inductor.aoti_load_package(str(path))
+    if fmt == "aoti":  # the package's runner on the flat tensors (its __call__ adds a pytree round trip)
+        run = torch._inductor.aoti_load_package(str(path)).loader.run
+
+        def step(inputs: dict[str, torch.Tensor]):
+            return tuple(run([inputs[name] for name in names]))
+
+        return step
+    module = torch.export.load(path).module()
 
     def step(inputs: dict[str, torch.Tensor]):
         with torch.no_grad():
@@ -57,21 +64,38 @@ def _onnx_step(path: Path, names: list[str], threads: int):
 
 
 def stream(step, info: dict, measurement, control=None, prev_control=None) -> torch.Tensor:
-    """Estimates [runs, steps, n] of ``step`` on [runs, steps, ·] data, carrying the state from its initial value."""
+    """Estimates [runs, steps, n] of ``step`` on [runs, steps, ·] data, carrying the state from its initial value.
+
+    The per-step inputs are sliced before the loop, so the loop holds the step and the carry only
+    (``benchmarks/bench_learned.py`` times it).
+    """
+    return trajectory(step, info, measurement, control, prev_control)()
+
+
+def trajectory(step, info: dict, measurement, control=None, prev_control=None):
+    """A function that streams the data through ``step`` and returns the estimates (``stream``, prepared)."""
     runs, steps = measurement.shape[:2]
     spec = {entry["name"]: entry for entry in info["inputs"]}
-    state = {"window": torch.zeros(runs, spec["window"]["shape"][1])}
-    if "prev_estimate" in info["initial"]:
-        state["prev_estimate"] = torch.tensor(info["initial"]["prev_estimate"]).expand(runs, -1).contiguous()
-    state["step"] = torch.ones(runs, 1, dtype=torch.int64)
-    out = []
-    for t in range(steps):
-        inputs = {"measurement": measurement[:, t].contiguous(), **state}
-        if "control" in spec:
-            inputs |= {"control": control[:, t].contiguous(), "prev_control": prev_control[:, t].contiguous()}
-        estimate, state["window"] = step(inputs)
-        if "prev_estimate" in state:
-            state["prev_estimate"] = estimate
-        state["step"] = state["step"] + 1
-        out.append(estimate)
-    return torch.stack(out, 1)
+    per_step = {"measurement": measurement.unbind(1)}
+    if "control" in spec:
+        per_step |= {"control": control.unbind(1), "prev_control": prev_control.unbind(1)}
+    per_step = [{key: value[t].contiguous() for key, value in per_step.items()} for t in range(steps)]
+    for t, inputs in enumerate(per_step):
+        inputs["step"] = torch.full((runs, 1), t + 1, dtype=torch.int64)
+    window0 = torch.zeros(runs, spec["window"]["shape"][1])
+    closed = "prev_estimate" in spec
+    if closed:
+        prev0 = torch.tensor(info["initial"]["prev_estimate"], dtype=torch.float32).expand(runs, -1).contiguous()
+
+    def run() -> torch.Tensor:
+        out, window = [], window0
+        prev = prev0 if closed else None
+        for inputs in per_step:
+            inputs["window"] = window
+            if closed:
+                inputs["prev_estimate"] = prev
+            prev, window = step(inputs)
+            out.append(prev)
+        return torch.stack(out, 1)
+
+    return run
