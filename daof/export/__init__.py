@@ -25,6 +25,7 @@ __all__ = [
     "example_inputs",
     "export_filter",
     "export_program",
+    "file_digest",
     "load_step",
     "read_contract",
     "stream",
@@ -35,6 +36,10 @@ __all__ = [
 
 def export_filter(filt, out: str | Path, formats=("torch", "onnx"), source: dict | None = None) -> dict:
     """Write ``filt``'s streaming step into directory ``out`` in ``formats``, then its contract (returned)."""
+    from daof.filters.learned import LearnedFilter
+
+    if not isinstance(filt, LearnedFilter):
+        raise ValueError(f"only a learned filter (DAOF-v1, DAOF-v2, SLF) exports, not a {type(filt).__name__}")
     unknown = [fmt for fmt in formats if fmt not in FORMATS]
     if unknown or not formats:
         raise ValueError(f"export formats must be some of {sorted(FORMATS)}, got {list(formats)}")
