@@ -127,7 +127,7 @@ def test_exported_step_equals_eager(exported, fmt):
     eager = f.run_streaming(data)
     estimates = stream(load_step(out, fmt), read_contract(out), *_signals(data))
     assert_parity(estimates, eager, f.system)
-    # batch 1 too (a deployed filter's case), on the first 150 steps (two of the gaps)
+    # batch 1 too (a deployed filter's case): the third run's first 150 steps, through its all-channel gap
     one = stream(load_step(out, fmt), read_contract(out), *(x[2:, :150] for x in _signals(data)))
     assert_parity(one, eager[2:, :150], f.system)
 
