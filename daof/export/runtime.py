@@ -1,0 +1,101 @@
+"""Run an exported step: load an artifact as a callable, and stream a trajectory through it.
+
+``load_step(directory, fmt)`` gives ``step(inputs) -> (estimate, next_window)`` for inputs a dict
+of tensors by the contract's input names, whichever the format: the ``torch.export`` program
+(``torch.export.load``), the AOTInductor package (``aoti_load_package``) or the ONNX model
+(onnxruntime, one thread). ``stream`` carries the state as the contract says.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from daof.export.artifacts import FORMATS
+from daof.export.contract import read_contract
+from daof.export.step import StreamingStep
+
+__all__ = ["load_step", "stream", "trajectory"]
+
+
+def load_step(directory: str | Path, fmt: str, threads: int = 1):
+    """The step stored in ``directory`` as format ``fmt``, a callable on a dict of input tensors."""
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; valid: {sorted(FORMATS)}")
+    info = read_contract(directory)
+    path = Path(directory) / FORMATS[fmt]
+    if not path.is_file():
+        raise FileNotFoundError(f"no {fmt} artifact at {path} (export with --format {fmt})")
+    names = [spec["name"] for spec in info["inputs"]]
+    if fmt == "onnx":
+        return _onnx_step(path, names, threads)
+    if fmt == "aoti":  # the package's runner on the flat tensors (its __call__ adds a pytree round trip)
+        run = torch._inductor.aoti_load_package(str(path)).loader.run
+
+        def step(inputs: dict[str, torch.Tensor]):
+            return tuple(run([inputs[name] for name in names]))
+
+        return step
+    module = torch.export.load(path).module()
+
+    def step(inputs: dict[str, torch.Tensor]):
+        with torch.no_grad():
+            return module(*(inputs.get(name) for name in StreamingStep.arguments))
+
+    return step
+
+
+def _onnx_step(path: Path, names: list[str], threads: int):
+    try:
+        import onnxruntime
+    except ImportError:
+        raise ImportError("running the ONNX model needs onnxruntime: pip install 'daof[export]'") from None
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = threads
+    session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    run = session.run
+
+    def step(inputs: dict[str, torch.Tensor]):
+        estimate, window = run(None, {name: inputs[name].numpy() for name in names})
+        return torch.from_numpy(estimate), torch.from_numpy(window)
+
+    return step
+
+
+def stream(step, info: dict, measurement, control=None, prev_control=None) -> torch.Tensor:
+    """Estimates [runs, steps, n] of ``step`` on [runs, steps, ·] data, carrying the state from its initial value.
+
+    The per-step inputs are sliced before the loop, so the loop holds the step and the carry only
+    (``benchmarks/bench_learned.py`` times it).
+    """
+    return trajectory(step, info, measurement, control, prev_control)()
+
+
+def trajectory(step, info: dict, measurement, control=None, prev_control=None):
+    """A function that streams the data through ``step`` and returns the estimates (``stream``, prepared)."""
+    runs, steps = measurement.shape[:2]
+    spec = {entry["name"]: entry for entry in info["inputs"]}
+    per_step = {"measurement": measurement.unbind(1)}
+    if "control" in spec:
+        per_step |= {"control": control.unbind(1), "prev_control": prev_control.unbind(1)}
+    per_step = [{key: value[t].contiguous() for key, value in per_step.items()} for t in range(steps)]
+    for t, inputs in enumerate(per_step):
+        inputs["step"] = torch.full((runs, 1), t + 1, dtype=torch.int64)
+    window0 = torch.zeros(runs, spec["window"]["shape"][1])
+    closed = "prev_estimate" in spec
+    if closed:
+        prev0 = torch.tensor(info["initial"]["prev_estimate"], dtype=torch.float32).expand(runs, -1).contiguous()
+
+    def run() -> torch.Tensor:
+        out, window = [], window0
+        prev = prev0 if closed else None
+        for inputs in per_step:
+            inputs["window"] = window
+            if closed:
+                inputs["prev_estimate"] = prev
+            prev, window = step(inputs)
+            out.append(prev)
+        return torch.stack(out, 1)
+
+    return run

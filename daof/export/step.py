@@ -1,0 +1,110 @@
+"""``StreamingStep``: one step of a learned filter as a pure function of tensors, for export.
+
+(y_t, u_t, u_{t−1}, h_{t−1}, x̂_{t−1}, t) -> (x̂_t, h_t): the caller carries the window h and, for
+the closed-loop filters, the estimate; nothing else is remembered between steps. The step reuses
+the filter's own deterministic path (``_inference_layers``, ``_fast_estimate``) and does what its
+``stream_steps`` loop does around it: a missing (NaN) channel reads as its last present value
+(the newest frame of h_{t−1}; the channel's training mean at t = 1), or for DAOF-v1 with
+``missing_fill="prediction"`` as its predicted measurement; at t = 1 the window is the first frame
+behind N − 1 copies of it. DAOF-v1's model f, g and its per-step tables (K̄_t, b_t, √diag S_t) are
+constants of the step, indexed by t.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from daof.envs.gaps import MISSING_KEY
+
+__all__ = ["StreamingStep"]
+
+
+class StreamingStep(nn.Module):
+    """The streaming step of ``filt`` (a ``LearnedFilter``); ``input_names`` lists its arguments in order."""
+
+    def __init__(self, filt):
+        super().__init__()
+        self.filter = filt.eval()
+        for p in self.filter.parameters():
+            p.requires_grad_(False)
+        s, layout = filt.system, filt.layout
+        self.layout = layout
+        self.measured = layout.without("prev_estimate")
+        self.closed_loop = layout.closed_loop
+        self.has_controls = s.control_dim > 0
+        self.predict_gaps = getattr(filt, "missing_fill", "hold") == "prediction"
+        with torch.no_grad():
+            layers = filt._inference_layers()
+        # the folded layers as buffers (None entries stay None): constants of the exported program
+        self._shape = []
+        for i, layer in enumerate(layers):
+            entry = []
+            for j, item in enumerate(layer):
+                if isinstance(item, tuple):  # the output squash (mid, half)
+                    names = [self._keep(f"layer{i}_{j}_{k}", t) for k, t in enumerate(item)]
+                    entry.append(tuple(names))
+                else:
+                    entry.append(None if item is None else self._keep(f"layer{i}_{j}", item))
+            self._shape.append(entry)
+        self.register_buffer("y_fill", filt.policy.input_loc[layout.offset("measurement")].detach().clone())
+        if self.has_controls or self.predict_gaps:  # build the model's constant caches outside tracing
+            with torch.no_grad():
+                x = s.prior.mean.float().unsqueeze(0)
+                u = torch.zeros(1, s.control_dim)
+                if s.has_model:
+                    s.g(s.f(x, u), u)
+
+    def _keep(self, name: str, tensor: torch.Tensor) -> str:
+        self.register_buffer(name, tensor.detach().clone())
+        return name
+
+    @property
+    def input_names(self) -> list[str]:
+        """The arguments this filter's step takes (not None), in order."""
+        unused = ({"control", "prev_control"} if not self.has_controls else set()) | (
+            {"prev_estimate"} if not self.closed_loop else set()
+        )
+        return [name for name in self.arguments if name not in unused]
+
+    output_names = ["estimate", "next_window"]
+
+    def _layers(self) -> list[tuple]:
+        def get(item):
+            if item is None:
+                return None
+            if isinstance(item, tuple):
+                return tuple(getattr(self, name) for name in item)
+            return getattr(self, item)
+
+        return [tuple(get(item) for item in entry) for entry in self._shape]
+
+    #: every argument of ``forward``, in order; a filter without controls or feedback takes None for those
+    arguments = ("measurement", "control", "prev_control", "window", "prev_estimate", "step")
+
+    def forward(self, measurement, control, prev_control, window, prev_estimate, step):
+        """(x̂_t, h_t) of one step; control and prev_control are None without controls, prev_estimate for the SLF."""
+        filt, layout, prev = self.filter, self.layout, prev_estimate
+        u = measurement[..., :0] if control is None else control  # f and g take empty controls
+        u_prev = measurement[..., :0] if prev_control is None else prev_control
+        first = step == 1  # [B, 1]: the window starts afresh
+        missing = torch.isnan(measurement)
+        if self.predict_gaps:
+            held = filt.system.g(filt.predict(prev, u_prev), u)
+        else:
+            held = torch.where(first, self.y_fill, layout.field(window, "measurement"))
+        values = {"measurement": torch.where(missing, held, measurement), "control": u, "prev_control": u_prev}
+        if self.measured.missing_flags:
+            values[MISSING_KEY] = missing.to(measurement.dtype)
+        frame = filt._frame(prev, self.measured.frame(values))
+        window = torch.where(first, layout.first_window(frame), layout.slide(window, frame))
+        estimate = filt._fast_estimate(self._layers(), window, prev, u_prev, step)
+        return estimate, window
+
+    def initial_state(self, batch: int = 1) -> dict[str, torch.Tensor]:
+        """The carried inputs before the first measurement: h_0 (any value; zeros), x̂_0 (the prior mean), t = 1."""
+        state = {"window": torch.zeros(batch, self.layout.width)}
+        if self.closed_loop:
+            state["prev_estimate"] = self.filter.system.prior.mean.float().expand(batch, -1).clone()
+        state["step"] = torch.ones(batch, 1, dtype=torch.int64)
+        return state
