@@ -141,8 +141,8 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
     gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps
     experiment1(*args, *gaps)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 4
-    assert out.count("reused finished result") == 9  # 8 filters and the doubled PF-oracle
+    assert out.count("finished earlier, reusing") == 5
+    assert out.count("reused finished result") == 10  # 9 filters and the doubled PF-oracle
     gappy = json.loads((report / "dropout" / "results.json").read_text())
     assert set(gappy["filters"]) == expected and gappy["dropout"]["p"] == 0.1
     assert all(0.05 < m < 0.5 for m in gappy["dropout"]["missing_fraction"])

@@ -74,7 +74,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # a second run reuses every training and every study result
     linear(*args)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 2 and out.count("reused finished result") == 5
+    assert out.count("finished earlier, reusing") == 3 and out.count("reused finished result") == 6
 
 
 @pytest.mark.parametrize(

@@ -218,8 +218,9 @@ def check_config(cfg: DictConfig) -> None:
     if cfg.optim.weight_decay < 0 or cfg.optim.max_grad_norm < 0:
         raise ValueError(f"optim.weight_decay and optim.max_grad_norm must be >= 0, got {dict(cfg.optim)}")
     if FILTER_KINDS[cfg.kind] != "supervised":
+        who = "DAOF" if FILTER_KINDS[cfg.kind] == "dsac" else cfg.kind
         if cfg.network.missing_mask or cfg.dropout.p_max > 0 or cfg.dropout.blackout_s > 0:
-            raise ValueError(f"network.missing_mask and dropout are the SLF's: {cfg.kind} trains on complete data")
+            raise ValueError(f"network.missing_mask and dropout are the SLF's: {who} trains on complete data")
     if FILTER_KINDS[cfg.kind] == "dsac":
         if cfg.optim.utd <= 0:
             raise ValueError(f"optim.utd must be > 0 (gradient updates per frame), got {cfg.optim.utd}")
