@@ -113,7 +113,7 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
     ):
         assert (report / name).is_file(), name
     results = json.loads((report / "results.json").read_text())
-    expected = {"EKF", "UKF", "PF", "PF-oracle", "SLF", "DAOF-v1", "DAOF-v2", "DAOF-v1 (N=1)"}
+    expected = {"EKF", "UKF", "PF", "PF-oracle", "SLF", "DAOF-v1", "DAOF-v2", "KalmanNet", "DAOF-v1 (N=1)"}
     assert set(results["filters"]) == expected
     for name, row in results["filters"].items():
         assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
@@ -142,8 +142,8 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
     gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps
     experiment1(*args, *gaps)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 4
-    assert out.count("reused finished result") == 9  # 8 filters and the doubled PF-oracle
+    assert out.count("finished earlier, reusing") == 5
+    assert out.count("reused finished result") == 10  # 9 filters and the doubled PF-oracle
     gappy = json.loads((report / "dropout" / "results.json").read_text())
     assert set(gappy["filters"]) == expected and gappy["dropout"]["p"] == 0.1
     assert all(0.05 < m < 0.5 for m in gappy["dropout"]["missing_fraction"])
@@ -282,14 +282,14 @@ def test_each_scenario_trains_on_its_own_data_in_its_own_directory(tmp_path):
     dirs = set()
     for sc, sp in plan.scenarios.items():
         assert Path(sp.cfg.output_root) == tmp_path / sc and Path(sp.cfg.report_dir) == tmp_path / sc / "report"
-        assert list(sp.jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)"]
-        assert sp.windows == {"SLF": 20, "DAOF-v2": 20, "DAOF-v1": 20, "DAOF-v1 (N=1)": 1}
+        assert list(sp.jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)", "KalmanNet"]
+        assert sp.windows == {"SLF": 20, "DAOF-v2": 20, "DAOF-v1": 20, "DAOF-v1 (N=1)": 1, "KalmanNet": 20}
         for name, job in sp.jobs.items():
             assert f"scenario={sc}" in job.overrides and job.name == f"{name} [{sc}]"
             assert f"window={sp.windows[name]}" in job.overrides
             assert job.requested_config["scenario"] == sc
             dirs.add(job.output_dir)
-    assert len(dirs) == 12 and Path(plan.cfg.combined_report_dir) == tmp_path / "report"
+    assert len(dirs) == 15 and Path(plan.cfg.combined_report_dir) == tmp_path / "report"
     # the default is one scenario, in the directory the README names
     single = plan_experiment("veh2dof", [])
     assert list(single.scenarios) == ["nominal"] and single.cfg.report_dir == "runs/experiment1/quick/nominal/report"
@@ -421,8 +421,8 @@ def test_the_entry_wants_one_experiment():
 def test_every_experiment_and_profile_plans():
     """Each shipped experiment, at each profile, composes, passes its checks and plans its trainings."""
     for name, rows in (
-        ("veh2dof", {"SLF", "DAOF-v2", "DAOF-v1"}),
-        ("linear", {"DAOF-v1", "DAOF-v2"}),
+        ("veh2dof", {"SLF", "DAOF-v2", "DAOF-v1", "KalmanNet"}),
+        ("linear", {"DAOF-v1", "DAOF-v2", "KalmanNet"}),
         ("veh14dof", {"SLF", "DAOF-v2"}),
     ):
         for profile in ("tiny", "quick", "paper"):

@@ -349,7 +349,7 @@ def test_daof_v1_reads_a_missing_channel_as_its_prediction():
 
 
 def test_prediction_fill_needs_a_model_predictor():
-    with pytest.raises(ValueError, match="DAOF-v1 only"):
+    with pytest.raises(ValueError, match="DAOF-v1/KalmanNet only"):
         small("DAOF-v2").missing_fill = "prediction"
     with pytest.raises(ValueError, match="missing_fill must be one of"):
         small("DAOF-v1").missing_fill = "zeros"

@@ -32,7 +32,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     assert results["system"] == "linear" and results["runs"] == 3 and results["steps"] == 60
     assert results["reference"] == "KF"
     rows = results["filters"]
-    assert list(rows) == ["KF", "KF-stationary", "PF", "DAOF-v1", "DAOF-v2"]
+    assert list(rows) == ["KF", "KF-stationary", "PF", "DAOF-v1", "DAOF-v2", "KalmanNet"]
     for name, row in rows.items():
         assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
         # the ratio column is this filter's RMSE over the KF's, per state
@@ -41,9 +41,10 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
         assert row["cost_ms"] > 0
     assert rows["KF"]["ratio_to_oracle"] == [1.0, 1.0]
     # the requirement is decided from the measured ratios and stated in the report
-    (check,) = results["requirements"]
+    check, kalmannet = results["requirements"]
     met = all(r <= 1.05 for r in rows["DAOF-v1"]["ratio_to_oracle"])
     assert check["requirement"] == "DAOF-v1 RMSE ≤ 1.05× KF per state" and check["met"] is met
+    assert kalmannet["met"] is all(r <= 1.05 for r in rows["KalmanNet"]["ratio_to_oracle"])
     text = (report / "report.md").read_text()
     assert "ratio to KF (position / velocity)" in text
     assert f"DAOF-v1 RMSE ≤ 1.05× KF per state: **{'met' if met else 'not met'}**." in text
@@ -56,7 +57,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
         table = list(csv.DictReader(fh))
     assert [r["filter"] for r in table] == list(rows) and float(table[0]["ratio_position"]) == 1.0
     # the trainings: python -m daof.train system=linear filter=daof_v1|daof_v2 with the profile's overrides
-    assert set(results["training"]) == {"DAOF-v1", "DAOF-v2"}
+    assert set(results["training"]) == {"DAOF-v1", "DAOF-v2", "KalmanNet"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
     # DAOF-v2 acts by increments, as in Experiment I (daof/conf/tuning/linear_daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20-s1" / "run_config.json").read_text())
@@ -73,7 +74,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # a second run reuses every training and every study result
     linear(*args)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 2 and out.count("reused finished result") == 5
+    assert out.count("finished earlier, reusing") == 3 and out.count("reused finished result") == 6
 
 
 @pytest.mark.parametrize(

@@ -61,7 +61,7 @@ LOGGERS = ("", "wandb")
 class LearnedRow:
     """One learned filter of the report: ``python -m daof.train filter=<filter> system=<system> window=N ...``."""
 
-    filter: str = MISSING  # the training's filter group: daof_v1 | daof_v2 | slf
+    filter: str = MISSING  # the training's filter group: daof_v1 | daof_v2 | slf | kalmannet
     dir: str | None = None  # run directory <output_root>/<dir>-N<window> (null: the filter, e.g. daof-v1)
     overrides: list[str] = field(default_factory=list)  # training overrides of this row in every profile
 

@@ -204,9 +204,11 @@ def plan_experiment(name: str, overrides: list[str], program: str | None = None)
 
 # ----------------------------------------------------------------------------------------- notes
 def _networks(filters: dict) -> str:
-    return "; ".join(
-        f"{name}: {f.config.depth} × {f.config.num_cells} GELU, N = {f.config.window}" for name, f in filters.items()
-    )
+    def describe(f) -> str:  # a filter without a window says what it is (KalmanNet)
+        c = f.config
+        return getattr(f, "architecture", None) or f"{c.depth} × {c.num_cells} GELU, N = {c.window}"
+
+    return "; ".join(f"{name}: {describe(f)}" for name, f in filters.items())
 
 
 def _fields(sp: ScenarioPlan, learned: dict) -> dict:

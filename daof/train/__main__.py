@@ -1,4 +1,4 @@
-"""Train one learned filter: ``python -m daof.train [filter=daof_v1|daof_v2|slf] [system=...] [key=value ...]``.
+"""Train one learned filter: ``python -m daof.train [filter=daof_v1|...|kalmannet] [system=...] [key=value ...]``.
 
     python -m daof.train                                   # DAOF-v1 on veh2dof, N = 20
     python -m daof.train filter=daof_v2 system=linear      # DAOF-v2 on the linear check
@@ -25,6 +25,8 @@ def train(cfg: DictConfig) -> dict:
     """Train (or resume) the filter ``cfg`` names (a ``compose_config`` result); returns its summary."""
     if FILTER_KINDS[cfg.kind] == "dsac":
         from daof.train.dsac import DSACTTrainer as Trainer
+    elif FILTER_KINDS[cfg.kind] == "kalmannet":
+        from daof.train.kalmannet import KalmanNetTrainer as Trainer
     else:
         from daof.train.supervised import SLFTrainer as Trainer
     trainer = Trainer(cfg)

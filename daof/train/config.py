@@ -34,7 +34,7 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 GROUPS = ("filter", "system", "tuning")
 
 #: filter kind -> the trainer that learns it
-FILTER_KINDS = {"DAOF-v1": "dsac", "DAOF-v2": "dsac", "SLF": "supervised"}
+FILTER_KINDS = {"DAOF-v1": "dsac", "DAOF-v2": "dsac", "SLF": "supervised", "KalmanNet": "kalmannet"}
 
 
 @dataclass
@@ -58,6 +58,8 @@ class Network:
     window_init: str = "uniform"  # PyTorch's init | newest: older frames' first-layer weights start at 0
     v2_action: str = FilterConfig.v2_action  # DAOF-v2: x̂ = π(h) (estimate) | x̂ = x̂_{t−1} + b_t·π(h) (increment)
     missing_mask: bool = FilterConfig.missing_mask  # SLF: frames carry a 0/1 missing flag per measurement channel
+    kalmannet_in_mult: int = FilterConfig.kalmannet_in_mult  # KalmanNet: width multiplier of its input layers
+    kalmannet_out_mult: int = FilterConfig.kalmannet_out_mult  # KalmanNet: width multiplier of its gain layer
 
 
 @dataclass
@@ -68,10 +70,10 @@ class Dropout:  # SLF: random sensor gaps in the training batches
 
 @dataclass
 class Collector:
-    env_batch: int = 32  # parallel episodes (DAOF) or fresh episodes per batch (SLF)
+    env_batch: int = 32  # parallel episodes (DAOF) or fresh episodes per batch (SLF, KalmanNet)
     steps_per_batch: int = 25  # DAOF: env steps per collected batch
     episode_steps: int = 500
-    total_frames: int = MISSING  # the budget: transitions (DAOF) or windows (SLF) seen; set per system
+    total_frames: int = MISSING  # the budget: transitions (DAOF), windows (SLF) or steps (KalmanNet); per system
     warmup_frames: int = 8000  # DAOF: transitions of the initial policy before learning starts
     feedback: str = "sample"  # DAOF: what enters h_{t+1}: the sampled action | mean (γ = 0 only)
 
@@ -89,13 +91,16 @@ class Buffer:
 
 @dataclass
 class Optim:
-    batch_size: int = 256
+    batch_size: int = 256  # samples per gradient step (KalmanNet: sequences)
     utd: float = 0.125  # DAOF: gradient updates per collected frame
     lr_actor: float = 1.0e-4  # DAOF
     lr_critic: float = 1.0e-4  # DAOF
     lr_alpha: float = 1.0e-3  # DAOF
-    lr: float = 3.0e-4  # SLF
-    epochs_per_batch: int = 1  # SLF: passes over each batch
+    lr: float = 3.0e-4  # SLF, KalmanNet
+    epochs_per_batch: int = 1  # SLF, KalmanNet: passes over each batch
+    bptt_steps: int = 100  # KalmanNet: steps per truncated-BPTT segment (≥ episode_steps: full BPTT)
+    weight_decay: float = 0.0  # KalmanNet: Adam's L2 weight decay (the authors use one)
+    max_grad_norm: float = 0.0  # KalmanNet: clip the gradient's norm to this (0: no clipping)
     lr_final: float = 0.1  # learning rates follow a cosine down to lr_final · lr over the budget (1: constant)
 
 
@@ -138,7 +143,7 @@ class Logger:
 
 @dataclass
 class TrainConfig:
-    kind: str = MISSING  # DAOF-v1 | DAOF-v2 | SLF (set by the filter group: filter=daof_v1|daof_v2|slf)
+    kind: str = MISSING  # DAOF-v1 | DAOF-v2 | SLF | KalmanNet (set by the filter group: filter=daof_v1|...)
     run_name: str = MISSING  # the run directory's stem (set by the filter group)
     system: str = MISSING  # a registered system name (set by the system group)
     scenario: str = FilterConfig.scenario
@@ -183,7 +188,7 @@ AT_LEAST_ONE = (
     "window", "threads", "network.num_cells", "network.depth", "collector.env_batch", "collector.steps_per_batch",
     "collector.episode_steps", "collector.total_frames", "buffer.size", "optim.batch_size", "optim.epochs_per_batch",
     "loss.delay", "loss.actor_samples", "validation.runs", "validation.steps", "validation.every_frames",
-    "checkpoint.every_frames",
+    "checkpoint.every_frames", "optim.bptt_steps", "network.kalmannet_in_mult", "network.kalmannet_out_mult",
 )  # fmt: skip
 POSITIVE = (
     "network.correction_sigmas", "optim.lr_actor", "optim.lr_critic", "optim.lr_alpha", "optim.lr",
@@ -217,9 +222,13 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(f"loss.gamma must be in [0, 1), got {cfg.loss.gamma}")
     if not (0.0 <= cfg.dropout.p_max <= 1.0 and cfg.dropout.blackout_s >= 0.0):
         raise ValueError(f"dropout needs p_max in [0, 1] and blackout_s >= 0, got {dict(cfg.dropout)}")
-    if FILTER_KINDS[cfg.kind] == "dsac":
+    if cfg.optim.weight_decay < 0 or cfg.optim.max_grad_norm < 0:
+        raise ValueError(f"optim.weight_decay and optim.max_grad_norm must be >= 0, got {dict(cfg.optim)}")
+    if FILTER_KINDS[cfg.kind] != "supervised":
+        who = "DAOF" if FILTER_KINDS[cfg.kind] == "dsac" else cfg.kind
         if cfg.network.missing_mask or cfg.dropout.p_max > 0 or cfg.dropout.blackout_s > 0:
-            raise ValueError("network.missing_mask and dropout are the SLF's: DAOF trains on complete data")
+            raise ValueError(f"network.missing_mask and dropout are the SLF's: {who} trains on complete data")
+    if FILTER_KINDS[cfg.kind] == "dsac":
         if cfg.optim.utd <= 0:
             raise ValueError(f"optim.utd must be > 0 (gradient updates per frame), got {cfg.optim.utd}")
         if cfg.collector.total_frames <= cfg.collector.warmup_frames:

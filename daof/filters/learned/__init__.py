@@ -7,6 +7,8 @@
   of a UKF's mean gain K̄_t at step t + a learned residual, π ∈ [−1, 1]ⁿ, bounded by b_t =
   correction_sigmas · that UKF's √diag P⁺_t)
 * ``SLF``:    x̂_t = φ(y_{t−N+1..t}, u_{t−N+1..t})     (open loop, trained by regression)
+* ``KalmanNet``: x̂_t = f(x̂_{t−1}, u_{t−1}) + K_t ν_t, K_t from a recurrent network (Revach et al. 2022;
+  trained by MSE over sequences, ``daof.train.kalmannet``)
 
 All share ``LearnedFilter`` (``base``): the network (window normaliser -> MLP -> (loc, log σ)), the
 window's ``layout``, ``run(data)`` (filters simulated data exactly as the env does),
@@ -28,6 +30,7 @@ from daof.filters.learned.checkpoint import load_filter
 from daof.filters.learned.config import MISSING_FILLS, RETIRED_OPTIONS, V2_ACTIONS, FilterConfig
 from daof.filters.learned.daof_v1 import DAOFv1
 from daof.filters.learned.daof_v2 import DAOFv2, DAOFv2Increment, increment_scale
+from daof.filters.learned.kalmannet import KalmanNet
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
 from daof.filters.learned.slf import SLF
 
@@ -41,6 +44,7 @@ __all__ = [
     "DAOFv2",
     "DAOFv2Increment",
     "FilterConfig",
+    "KalmanNet",
     "LearnedFilter",
     "PolicyNet",
     "SLF",

@@ -50,7 +50,7 @@ class FilterConfig:
     config that still holds them.
     """
 
-    kind: str  # "DAOF-v1" | "DAOF-v2" | "SLF"
+    kind: str  # "DAOF-v1" | "DAOF-v2" | "SLF" | "KalmanNet"
     system: str
     scenario: str = "nominal"
     window: int = 20
@@ -80,6 +80,9 @@ class FilterConfig:
     #: channel is missing (its value then holds the last present one). Meant for filters trained
     #: through random gaps (``dropout`` in the recipes' configs, ``daof.envs.gaps``); docs/missing_data.md
     missing_mask: bool = False
+    #: KalmanNet's gain network: the width multipliers of its input and output layers (the authors' 5 and 40)
+    kalmannet_in_mult: int = 5
+    kalmannet_out_mult: int = 40
 
     def __post_init__(self):
         from daof.filters.learned.base import filter_class  # the classes import this module
@@ -117,7 +120,8 @@ class FilterConfig:
             raise ValueError(f"training config has version {cfg.get('version')!r}; known: {sorted(_VERSIONS)}")
         net = retire_options(str(kind), dict(cfg.get("network") or {}))
         default = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
-        options = ("num_cells", "depth", "correction_sigmas", "startup_input", "v2_action", "missing_mask")
+        options = ("num_cells", "depth", "correction_sigmas", "startup_input", "v2_action", "missing_mask",
+                   "kalmannet_in_mult", "kalmannet_out_mult")  # fmt: skip
         config = cls(
             kind=str(kind),
             system=str(cfg["system"]),
