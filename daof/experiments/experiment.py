@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from daof.device import resolve_device
 from daof.evaluate import Dropout, run_study
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import (
@@ -103,6 +104,7 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
     other windows (``"<row> (N=<n>)"``, largest first); ``label`` is appended to the job names in the log."""
     root = Path(cfg.output_root)
     common = [f"system={cfg.system}", f"scenario={cfg.scenario}", f"seed={cfg.training_seed}"]
+    common += [f"device={cfg.device}"] if cfg.device != "cpu" else []  # the CPU default: the commands as before
     extra = [*cfg.training_overrides, *(f"overrides.{k}={v}" for k, v in p.system.items())]
     rows = []
     for name in cfg.learned:
@@ -326,6 +328,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         steps=int(p.steps),
         seed=int(cfg.seed),
         timing_threads=int(cfg.timing_threads),
+        device=resolve_device(cfg.device),
         cache_dir=Path(cfg.output_root) / "study",
         reference=reference_of(cfg, [*classical, *sp.jobs]),
         expect=lambda name: {"system": cfg.system, "scenario": scenario, "window": sp.windows[name]},
