@@ -178,8 +178,19 @@ class DSACTLoss(LossModule):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _make_vmap(self):
-        """The critic ensemble in one call: the input is shared, the parameters stacked on dim 0."""
+        """The critic ensemble in one call: the input is shared, the parameters stacked on dim 0.
+
+        A critic whose module ``splits_action`` (its output is ``from_action_free(action_free(...), a)``,
+        with the first part reading no action and the second no parameter) is called in those two
+        parts, so ``forward`` computes the action-free part once and the actor loss reuses it.
+        """
         self._vmap_qnetworkN0 = _vmap_func(self.qvalue_network, (None, 0), randomness=self.vmap_randomness)
+        module = getattr(self.qvalue_network, "module", None)
+        self._critic_split = getattr(module, "splits_action", False) and hasattr(module, "input_keys")
+        if self._critic_split:
+            self._vmap_action_free = _vmap_func(
+                self.qvalue_network, (None, None, 0), func="action_free", randomness=self.vmap_randomness
+            )
 
     # ------------------------------------------------------------------ keys and estimators
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -288,13 +299,28 @@ class DSACTLoss(LossModule):
     # ------------------------------------------------------------------ pieces
     def _critic_mu_sigma(self, tensordict: TensorDictBase, params) -> tuple[Tensor, Tensor]:
         """All critics at once: μ, σ of shape [num_qvalue_nets, *batch, K]."""
-        td = tensordict.select(*self.qvalue_network.in_keys, strict=False)
-        out = self._vmap_qnetworkN0(td, params).get(self.tensor_keys.state_action_value)
+        return self._critics(tensordict, params)[:2]
+
+    def _critics(self, tensordict: TensorDictBase, params, free: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """μ, σ and, for a critic that splits off its action, its action-free part ([E, *batch, ·]; else None).
+
+        ``free``: that part, already computed (the actor loss's reuse of the critic loss's).
+        """
+        if self._critic_split:
+            module = self.qvalue_network.module
+            keys = module.input_keys
+            step = tensordict.get(keys["step"]) if "step" in keys else None
+            if free is None:
+                free = self._vmap_action_free(tensordict.get(keys["window"]), step, params)
+            out = module.from_action_free(free, tensordict.get(keys["action"]))
+        else:
+            td = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+            out = self._vmap_qnetworkN0(td, params).get(self.tensor_keys.state_action_value)
         K = self.reward_components
         if out.shape[-1] != 2 * K:
             raise ValueError(f"the critic must output 2·reward_components = {2 * K} values, got {out.shape[-1]}")
         out = out.unflatten(-1, (K, 2))
-        return out[..., 0], F.softplus(out[..., 1])
+        return out[..., 0], F.softplus(out[..., 1]), free
 
     def _sample_actor(self, tensordict: TensorDictBase, params, samples: int = 1) -> tuple[Tensor, Tensor]:
         """ã ~ π(·|s) and log π(ã|s); ``samples`` > 1 draws that many per state (dim 0)."""
@@ -375,7 +401,7 @@ class DSACTLoss(LossModule):
     def qvalue_loss(self, tensordict: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
         """Critic loss Σ_i L_i (spec, steps 1–5) and its diagnostics; updates σ̄ first."""
         y_q, y_z = self.compute_targets(tensordict)
-        mu, sigma = self._critic_mu_sigma(tensordict, self.qvalue_network_params)
+        mu, sigma, free = self._critics(tensordict, self.qvalue_network_params)
         sigma_bar = self._update_sigma_bar(sigma)  # [E, K]
         sb = sigma_bar.reshape(sigma_bar.shape[0], *[1] * (mu.ndim - 2), sigma_bar.shape[1])
         y_b = clip_sampled_target(y_z, mu, sb, self.xi)
@@ -396,15 +422,21 @@ class DSACTLoss(LossModule):
                 "td_error_abs": err.abs().sum(-1).mean(),
                 "nll": nll.mean(),
             }
+        if free is not None:  # the critics' action-free part, for the actor loss on the same batch
+            metadata["action_free"] = free
         return loss, metadata
 
-    def actor_loss(self, tensordict: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
+    def actor_loss(
+        self, tensordict: TensorDictBase, action_free: Tensor | None = None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
         """L_π = mean[α log π(ã|s) − Σ_k min_i μ_ik(s, ã)] with the critics' parameters detached.
 
         The mean is over the batch and, with ``actor_samples`` = M > 1, over M actions drawn per
         state: the same objective with 1/M of its sampling variance. The noise of one draw scales
         with the policy's spread, which can far exceed the error the actor is learning to remove.
         The critics see each state's input expanded (a view) beside its M actions.
+        ``action_free``: the critic loss's action-free part on the same batch and critic weights
+        (``qvalue_loss``'s metadata), reused detached instead of evaluated again: the same values.
         """
         M = self.actor_samples
         action, log_prob = self._sample_actor(tensordict, self.actor_network_params, M)
@@ -413,7 +445,10 @@ class DSACTLoss(LossModule):
             td_q = td_q.unsqueeze(-1).expand(*td_q.batch_size, M)
             action, log_prob = action.movedim(0, -2), log_prob.movedim(0, -1)
         td_q.set(self.tensor_keys.action, action)
-        mu, _ = self._critic_mu_sigma(td_q, self._cached_detached_qvalue_params)
+        if action_free is not None:  # the critic loss's, on this batch and these critic weights: detached
+            action_free = action_free.detach()
+            action_free = action_free.unsqueeze(-2) if M > 1 else action_free
+        mu = self._critics(td_q, self._cached_detached_qvalue_params, action_free)[0]
         min_mu = mu.min(0)[0].sum(-1)
         log_prob = log_prob.reshape(min_mu.shape)
         loss = (self._alpha * log_prob - min_mu).mean()
@@ -426,7 +461,7 @@ class DSACTLoss(LossModule):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         loss_qvalue, meta_q = self.qvalue_loss(tensordict)
-        loss_actor, meta_actor = self.actor_loss(tensordict)
+        loss_actor, meta_actor = self.actor_loss(tensordict, meta_q.pop("action_free", None))
         loss_alpha = self.alpha_loss(meta_actor["log_prob"])
         tensordict.set(self.tensor_keys.priority, meta_q.pop("td_error"))
         return TensorDict(

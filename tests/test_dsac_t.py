@@ -5,7 +5,7 @@ import math
 
 import pytest
 import torch
-from daof.losses import DSACTLoss, clip_sampled_target, critic_surrogate
+from daof.losses import DSACTLoss, ForeachSoftUpdate, clip_sampled_target, critic_surrogate
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
@@ -339,3 +339,24 @@ def test_a_list_of_critics_keeps_each_critics_own_parameters():
     assert expanded.qvalue_network_params["module", "2", "weight"][:, 0].abs().amax() > 0
     with pytest.raises(ValueError, match="2 critics"):
         make_loss(critics, num_qvalue_nets=3)
+
+
+def test_foreach_soft_update_gives_soft_updates_numbers_bit_for_bit():
+    torch.manual_seed(0)
+    a = make_loss()
+    b = make_loss()
+    b.load_state_dict(a.state_dict())
+    slow, fast = SoftUpdate(a, tau=0.005), ForeachSoftUpdate(b, tau=0.005)
+    for loss in (a, b):
+        with torch.no_grad():
+            for p in loss.parameters():
+                p.add_(torch.linspace(-1, 1, p.numel()).reshape(p.shape))
+    before = {k: v.clone() for k, v in a.state_dict().items()}
+    for _ in range(3):
+        slow.step()
+        fast.step()
+    sa, sb = a.state_dict(), b.state_dict()
+    moved = [k for k in sa if k.startswith("target_") and not torch.equal(sa[k], before[k])]
+    assert len(moved) >= 4  # the actor's and the critics' targets
+    for key in sa:
+        assert torch.equal(sa[key], sb[key]), key

@@ -656,3 +656,47 @@ def test_resume_rewrites_best_pt_from_the_checkpoint_and_refuses_another_seed(tm
     other = DSACTTrainer(tiny_cfg("config.yaml", tmp_path, seed=2, **{"collector.total_frames": 400}))
     with pytest.raises(ValueError, match="checkpoint .* is for seed=1, this run has 2"):
         other.resume(tmp_path / "checkpoint.pt")
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"network.critic_form": "quadratic"},
+        {"network.critic_form": "reward_quadratic", "loss.actor_samples": 4},
+        {"network.critic_form": "reward_quadratic", "loss.critic_per_state": True, "network.critic_scale": "reward"},
+    ],
+)
+def test_a_split_critic_gives_the_whole_critics_values_and_the_actor_loss_its_gradients(tmp_path, changes):
+    """A quadratic critic runs as its action-free part, then the action; the actor loss reuses the critic
+    loss's action-free part. Both give what the whole critic module (vmapped) and a fresh critic pass give."""
+    cfg = tiny_cfg("config.yaml", tmp_path, **{"collector.total_frames": 300, **changes})
+    cfg.loss.gamma = 0.0
+    trainer = DSACTTrainer(cfg)
+    trainer.train()
+    loss, batch = trainer.loss, trainer.buffer.sample()
+    assert loss._critic_split
+    params = loss.qvalue_network_params
+    whole = loss._vmap_qnetworkN0(batch.select(*loss.qvalue_network.in_keys, strict=False), params)
+    whole = whole["state_action_value"].unflatten(-1, (-1, 2))
+    mu, sigma = loss._critic_mu_sigma(batch, params)
+    torch.testing.assert_close(mu, whole[..., 0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(sigma, torch.nn.functional.softplus(whole[..., 1]), rtol=0, atol=1e-6)
+    actor = [p for p in loss.actor_network_params.flatten_keys().values() if p.requires_grad]
+    results = []
+    for reuse in (True, False):
+        torch.manual_seed(5)  # the same actions drawn (γ = 0: the critic loss draws nothing)
+        if reuse:
+            value = loss(batch)["loss_actor"]
+        else:
+            loss.qvalue_loss(batch)
+            value = loss.actor_loss(batch)[0]
+        results.append((value.detach(), torch.autograd.grad(value, actor)))
+    (a, grads_a), (b, grads_b) = results
+    torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+    for ga, gb in zip(grads_a, grads_b):
+        torch.testing.assert_close(ga, gb, rtol=1e-5, atol=1e-6)
+    assert any(g.abs().max() > 0 for g in grads_a)
+    critics = [p for p in loss.qvalue_network_params.flatten_keys().values() if p.requires_grad]
+    torch.manual_seed(5)
+    leaked = torch.autograd.grad(loss(batch)["loss_actor"], critics, allow_unused=True)
+    assert all(g is None or not g.any() for g in leaked)  # the reused part is detached

@@ -129,6 +129,7 @@ def run_study(
     dropout: Dropout | None = None,
     versions: dict[str, str] | None = None,
     reference: str = ORACLE,
+    device: torch.device | str = "cpu",
 ) -> Study:
     """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set.
 
@@ -137,6 +138,8 @@ def run_study(
     it is part of the cache key, so a retrained filter is evaluated again instead of reused.
     ``reference``: the filter the ratios and the diverged-run threshold are relative to (the
     protocol's PF-oracle; the exact Kalman filter ``"KF"`` on the linear system).
+    ``device``: where the learned filters (``torch.nn.Module``s, already there) filter; the data is
+    simulated on the CPU and moved there once, their estimates come back.
     """
     data = system.simulate(runs, steps, seed)
     # the system's parameters are part of the key: a study of another μ never reuses this one's results
@@ -153,6 +156,7 @@ def run_study(
         cache.mkdir(parents=True, exist_ok=True)
     results: dict[str, FilterResult] = {}
     estimates: dict[str, torch.Tensor] = {}
+    moved = None  # the data on ``device``, made once
     for i, (name, filt) in enumerate(filters.items(), 1):
         path = _cache_path(cache, name, key.get("dropout")) if cache is not None else None
         filter_key = {**key, "version": (versions or {}).get(name)}
@@ -162,7 +166,11 @@ def run_study(
             log(f"[{i}/{len(filters)}] {name}: reused finished result ({path})")
             continue
         log(f"[{i}/{len(filters)}] {name}: filtering {runs} runs x {steps} steps ...")
-        result, est = _evaluate_one(filt, data, timing_threads, measure_cost)
+        on_device = isinstance(filt, torch.nn.Module) and torch.device(device) != data.device
+        if on_device and moved is None:
+            moved = data.to(device)
+        result, est = _evaluate_one(filt, moved if on_device else data, timing_threads, measure_cost)
+        est = est.to(data.device)
         results[name], estimates[name] = result, est
         rmse = ", ".join(f"{v:.4g}" for v in result.rmse)
         cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"

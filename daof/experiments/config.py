@@ -26,6 +26,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from daof.config_checks import check_override_keys, one_line
+from daof.device import resolve_device
 from daof.evaluate.report import PAPER_TABLES, Layout
 from daof.train.config import CONF_DIR as TRAIN_CONF_DIR
 
@@ -136,6 +137,7 @@ class ExperimentConfig:
     parallel_jobs: int = 2  # trainings run as subprocesses, one torch thread each
     timing_threads: int = 1  # torch threads while timing cost per estimate
     logger: str = ""  # wandb: every training and the report log an (offline) wandb run; "" none (docs/experiments.md)
+    device: str = "cpu"  # cpu | cuda | cuda:<k> | auto: where the trainings and the study's learned filters run
     learned: dict[str, LearnedRow] = field(default_factory=dict)  # report row -> its training, in report order
     training_overrides: list[str] = field(default_factory=list)  # overrides of every training
     sweep_override: str | None = None  # one training override applied after all others (daof.experiments.sweep)
@@ -237,6 +239,7 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
     from daof.envs import make_system
     from daof.evaluate.dropout import dropout_mask
 
+    resolve_device(cfg.device)  # a GPU that is not there: one line, before any work
     if cfg.profile not in cfg.profiles:
         raise ValueError(f"unknown profile {cfg.profile!r}; valid: {list(cfg.profiles)}")
     p = cfg.profiles[cfg.profile]

@@ -32,6 +32,7 @@ import torch
 from omegaconf import OmegaConf
 
 from daof.dashboard import log_report
+from daof.device import resolve_device
 from daof.evaluate import Dropout, run_study
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import (
@@ -113,6 +114,7 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
     root = Path(cfg.output_root)
     seeds = list(cfg.training_seeds)
     common = [f"system={cfg.system}", f"scenario={cfg.scenario}"]
+    common += [f"device={cfg.device}"] if cfg.device != "cpu" else []  # the CPU default: the commands as before
     extra = [*cfg.training_overrides, *(f"overrides.{k}={v}" for k, v in p.system.items())]
     if cfg.logger:  # logger keys never make a finished run stale (daof.train.base.RESUMABLE_CHANGES)
         extra += [f"logger.backend={cfg.logger}", f"logger.group={_group(cfg)}", f"logger.tags=[{cfg.profile}]"]
@@ -350,6 +352,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         steps=int(p.steps),
         seed=int(cfg.seed),
         timing_threads=int(cfg.timing_threads),
+        device=resolve_device(cfg.device),
         cache_dir=Path(cfg.output_root) / "study",
         reference=reference_of(cfg, [*classical, *sp.jobs]),
         expect=lambda name: {"system": cfg.system, "scenario": scenario, "window": sp.windows[name]},

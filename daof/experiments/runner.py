@@ -8,6 +8,7 @@ training) ends the run with one line naming the problem (``SystemExit``), not a 
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import inspect
 import json
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import torch
 
+from daof.device import resolve_device
 from daof.evaluate.study import ORACLE, Study, run_study
 from daof.experiments.jobs import TrainingJob, run_jobs
 from daof.filters.base import Filter
@@ -50,19 +52,24 @@ def train(jobs: Sequence[TrainingJob], parallel: int, log=print) -> None:
         raise SystemExit(str(error)) from None
 
 
-def load_trained(jobs: dict[str, TrainingJob], system, expect: dict | Callable[[str], dict] | None = None) -> dict:
-    """Each job's ``best.pt`` as a filter (name -> ``LearnedFilter``), checked against ``expect``.
+def load_trained(
+    jobs: dict[str, TrainingJob], system, expect: dict | Callable[[str], dict] | None = None, device="cpu"
+) -> dict:
+    """Each job's ``best.pt`` as a filter (name -> ``LearnedFilter``) on ``device``, checked against ``expect``.
 
     ``expect``: config fields every checkpoint must have (``{"system": ..., "window": ...}``), or a
     function of the job name giving them. A missing checkpoint, or one of another system, scenario
     or window (a stale output directory), exits with one line that names the job and its directory.
     """
     filters = {}
+    device = resolve_device(device)
+    if device.type != "cpu":  # the filters' own copy of the system (DAOF-v1 predicts with it); the study's stays
+        system = copy.deepcopy(system).to(device)
     for name, job in jobs.items():
         fields = expect(name) if callable(expect) else expect
         path = job.output_dir / "best.pt"
         try:
-            filters[name] = load_filter(path, system, expect=fields)
+            filters[name] = load_filter(path, system, expect=fields).to(device)
         except (FileNotFoundError, ValueError) as error:
             raise SystemExit(f"{name}: {error} (train it again: delete {job.output_dir})") from None
     return filters
@@ -82,6 +89,7 @@ def run_trained_study(
     reference: str | None = ORACLE,
     dropout=None,
     log=print,
+    device="cpu",
 ) -> tuple[Study, dict]:
     """The study of ``classical`` filters (name -> filter) and every job's best checkpoint after them.
 
@@ -89,13 +97,14 @@ def run_trained_study(
     a retrained filter is never scored from a stale cache entry; classical ones under a digest of
     their code and settings (``classical_fingerprint``), so an edited filter is run again.
     ``dropout`` (a ``Dropout``) runs the study on the same data with those measurement gaps.
+    ``device``: where the learned filters run (the classical ones stay on the CPU).
     Returns the study and every filter.
     """
     filters = dict(classical or {})
     clash = sorted(set(filters) & set(jobs))
     if clash:
         raise ValueError(f"filter names {clash} are both classical filters and training jobs")
-    filters.update(load_trained(jobs, system, expect))
+    filters.update(load_trained(jobs, system, expect, device))
     # the weights and how a missing channel is read (it changes the estimates under dropout)
     versions = {name: classical_fingerprint(filt, system) for name, filt in (classical or {}).items()}
     versions.update(
@@ -116,6 +125,7 @@ def run_trained_study(
         versions=versions,
         reference=reference,
         dropout=dropout,
+        device=device,
     )
     return study, filters
 

@@ -21,6 +21,7 @@ from torchrl.record.loggers import get_logger
 from tqdm import tqdm
 
 from daof.dashboard import log_training_end, training_identity
+from daof.device import resolve_device
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
@@ -40,7 +41,7 @@ RUN_FILES = (RUN_CONFIG, "best.pt", "final.pt", "checkpoint.pt", "summary.json",
              "learning_curve.png")  # fmt: skip
 #: config keys a run may change when it is resumed
 RESUMABLE_CHANGES = (
-    "resume", "output_dir", "threads", "collector.total_frames", "checkpoint.every_frames",
+    "resume", "output_dir", "threads", "device", "collector.total_frames", "checkpoint.every_frames",
     "logger.backend", "logger.mode", "logger.project", "logger.name", "logger.group", "logger.tags",
 )  # fmt: skip
 
@@ -89,6 +90,9 @@ class FilterTrainer:
         if cfg.kind not in self.kinds:
             raise ValueError(f"{type(self).__name__} trains {' or '.join(self.kinds)}, not {cfg.kind!r}")
         self.cfg = cfg
+        #: where the networks, env, replay buffer and validation run (``cfg.device``); the normaliser,
+        #: the validation set and DAOF-v1's schedules are made on the CPU, so they are the same on every device
+        self.device = resolve_device(cfg.device)
         torch.set_num_threads(int(cfg.threads))
         torch.manual_seed(int(cfg.seed))
         self.out = Path(cfg.output_dir)
@@ -98,8 +102,9 @@ class FilterTrainer:
         self.system = make_system(cfg.system, cfg.scenario, **cfg.overrides)
         self.filter = LearnedFilter(FilterConfig.from_training(cfg), self.system)
         self.filter.fit_normalizer(seed=int(cfg.seeds.normalizer))
+        self.filter.to(self.device)
         v = cfg.validation
-        self.val_data = self.system.simulate(int(v.runs), int(v.steps), int(cfg.seeds.validation))
+        self.val_data = self.system.simulate(int(v.runs), int(v.steps), int(cfg.seeds.validation)).to(self.device)
         self.frames = 0
         self.updates = 0
         self.wall = 0.0

@@ -24,6 +24,7 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from daof.config_checks import check_override_keys, one_line
+from daof.device import resolve_device
 from daof.filters.learned.config import FilterConfig
 
 __all__ = ["CONF_DIR", "FILTER_KINDS", "TrainConfig", "check_config", "compose_config", "register_configs"]
@@ -152,6 +153,7 @@ class TrainConfig:
     include_controls: bool = FilterConfig.include_controls  # frames carry (u_t, u_{t−1})
     seed: int = 1
     threads: int = 1  # torch threads (the MLPs are small: one thread per run is the efficient choice)
+    device: str = "cpu"  # cpu | cuda | cuda:<k> | auto (a GPU if there is one): where training runs (daof.device)
     resume: str | None = None  # a checkpoint.pt of the same run to continue
     output_dir: str = "runs/${system}/${scenario}/${run_name}-N${window}-s${seed}"
     seeds: Seeds = field(default_factory=Seeds)
@@ -242,6 +244,7 @@ def check_config(cfg: DictConfig) -> None:
                 f"optim.utd={cfg.optim.utd} makes no update per collected batch of {per_batch} frames "
                 "(collector.env_batch · collector.steps_per_batch)"
             )
+    resolve_device(cfg.device)  # a GPU that is not there: one line, before any work
     try:
         overrides = {k: v for k, v in (cfg.overrides or {}).items() if k != "replay"}
         make_system(cfg.system, cfg.scenario, **overrides)

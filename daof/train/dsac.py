@@ -26,13 +26,12 @@ from tensordict import TensorDictBase
 from torchrl._utils import timeit
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.objectives import SoftUpdate
 
 from daof.envs.filtering_env import FEEDBACK_KEY, FilteringEnv, default_reward_weights
 from daof.envs.history import FRAME_KEY, with_window
 from daof.envs.recorded import find_recorded
 from daof.filters.learned import DAOFv1
-from daof.losses import DSACTLoss
+from daof.losses import DSACTLoss, ForeachSoftUpdate
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
@@ -56,6 +55,7 @@ class DSACTTrainer(FilterTrainer):
     def __init__(self, cfg: DictConfig):
         super().__init__(cfg)
         self._make_schedules()
+        self.system.to(self.device)  # after the schedules: their UKF run simulates on the CPU
         if isinstance(self.filter, DAOFv1):  # its update is K̄_t ν_t + a residual that starts at 0
             self._start_at_the_reference()
         self._init_window(self.filter.policy.mlp)
@@ -103,8 +103,9 @@ class DSACTTrainer(FilterTrainer):
             make_critic(self.filter, int(cfg.network.num_cells), int(cfg.network.depth), terms, form, weights, scale)
             for _ in range(2 if init == "own" else 1)
         ]
-        for critic in critics:
+        for critic in critics:  # initialised on the CPU, then moved: the same initial critics on every device
             self._init_window(critic.module.mlp)
+            critic.to(self.device)
         self.critic = critics[0]
         self.loss = DSACTLoss(
             stochastic_actor(self.filter),
@@ -120,7 +121,7 @@ class DSACTTrainer(FilterTrainer):
         if per_state:
             self.loss.set_keys(reward="reward_per_state")
         self.loss.make_value_estimator(gamma=float(cfg.loss.gamma))
-        self.target_updater = SoftUpdate(self.loss, tau=float(cfg.loss.tau))
+        self.target_updater = ForeachSoftUpdate(self.loss, tau=float(cfg.loss.tau))  # SoftUpdate's numbers, faster
         o = cfg.optim
         self.optim_critic = torch.optim.Adam(
             list(self.loss.qvalue_network_params.flatten_keys().values()), lr=float(o.lr_critic)
@@ -195,7 +196,12 @@ class DSACTTrainer(FilterTrainer):
         cfg = self.cfg
         c = cfg.collector
         env = FilteringEnv(
-            self.system, int(c.env_batch), int(c.episode_steps), self.reward_weights, seed=int(cfg.seeds.train)
+            self.system,
+            int(c.env_batch),
+            int(c.episode_steps),
+            self.reward_weights,
+            seed=int(cfg.seeds.train),
+            device=self.device,
         )
         self.base_env = env
         baseline = str(cfg.reward.baseline)
@@ -206,7 +212,7 @@ class DSACTTrainer(FilterTrainer):
         self.baseline = ZeroActionBaseline(self.filter, env.reward_weights) if baseline != "none" else None
         self.env = with_window(env, self.filter.layout)
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(cfg.buffer.size)),
+            storage=LazyTensorStorage(int(cfg.buffer.size), device=self.device),
             batch_size=int(cfg.optim.batch_size),
         )
 
@@ -285,8 +291,12 @@ class DSACTTrainer(FilterTrainer):
         ``delay``-th update, where the actor loss is computed at all. Every backward runs before
         any optimiser step, because the actor loss reads the (detached) critic weights.
         """
-        batch = self.buffer.sample()
-        delayed = self.updates % int(self.cfg.loss.delay) == 0
+        out = self.update_on(self.buffer.sample(), self.updates % int(self.cfg.loss.delay) == 0)
+        self.updates += 1
+        return out
+
+    def update_on(self, batch: TensorDictBase, delayed: bool) -> dict:
+        """The gradient steps of one update on ``batch``; ``delayed``: also the actor, α and targets."""
         if delayed:
             out = self.loss(batch)
         else:
@@ -303,7 +313,6 @@ class DSACTTrainer(FilterTrainer):
             self.optim_actor.step()
             self.optim_alpha.step()
             self.target_updater.step()
-        self.updates += 1
         return out
 
     def to_replay(self, batch: TensorDictBase) -> TensorDictBase:

@@ -114,17 +114,33 @@ class FilterCritic(nn.Module):
                 last.bias[2 * reward_terms : 2 * reward_terms + n].zero_()
 
     def forward(self, window: torch.Tensor, action: torch.Tensor, step=None) -> torch.Tensor:
-        actor = self._actor[0]
-        mid, half = actor.squash_affine()
-        a = (action - mid) / half
         if self.form == "mlp":
-            return self.mlp(torch.cat([actor.policy.features(window, step), a], -1))
+            actor = self._actor[0]
+            mid, half = actor.squash_affine()
+            return self.mlp(torch.cat([actor.policy.features(window, step), (action - mid) / half], -1))
+        return self.from_action_free(self.action_free(window, step), action)
+
+    @property
+    def splits_action(self) -> bool:
+        """Whether the output is ``from_action_free(action_free(h, t), a)``: the quadratic forms (MLP on h alone)."""
+        return self.form != "mlp"
+
+    def action_free(self, window: torch.Tensor, step=None) -> torch.Tensor:
+        """A quadratic form's (V, raw scale, m, p) per window, concatenated on the last dim: all that reads h."""
         if window.ndim > 2 and window.shape[-2] > 1 and window.stride(-2) == 0:
             # one window expanded beside several actions (DSACTLoss's actor_samples): the MLP of a
             # quadratic form reads h alone, so it runs once per window and broadcasts
             window = window[..., :1, :]
             step = step[..., :1, :] if isinstance(step, torch.Tensor) and step.ndim == window.ndim else step
         value, raw_scale, best, curvature = self.heads(window, step)
+        return torch.cat([value, raw_scale, best, curvature.expand_as(best)], -1)
+
+    def from_action_free(self, free: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """(μ, raw scale) per reward term at ``action`` from ``action_free``'s output; reads no parameter."""
+        K, n = self.reward_terms, self._actor[0].system.state_dim
+        value, raw_scale, best, curvature = free.split([K, K, n, n], -1)
+        mid, half = self._actor[0].squash_affine()
+        a = (action - mid) / half
         penalty = curvature * (a - best).pow(2)
         if self.reward_terms == 1:
             penalty = penalty.sum(-1, keepdim=True)
@@ -169,4 +185,5 @@ def make_critic(
     """Critic reading (h_t^N, t where the actor reads it, the action key), writing ``state_action_value`` [.., 2K]."""
     net = FilterCritic(actor, num_cells, depth, reward_terms, form, reward_weights, scale)
     in_keys = dict(zip(["window", "step"], actor.policy_in_keys)) | {"action": actor.action_key}
+    net.input_keys = in_keys  # argument -> tensordict key, for a loss that calls action_free itself
     return TensorDictModule(net, in_keys=in_keys, out_keys=["state_action_value"])

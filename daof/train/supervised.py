@@ -38,6 +38,7 @@ class SLFTrainer(FilterTrainer):
 
     def __init__(self, cfg: DictConfig):
         super().__init__(cfg)
+        self.system.to(self.device)
         self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(cfg.optim.lr))
         s = self.system
         self.weights = 1.0 / (s.state_dim * s.error_scale**2)
@@ -58,12 +59,12 @@ class SLFTrainer(FilterTrainer):
         """One batch of fresh episodes as (windows [M, N·F], targets [M, n])."""
         c = self.cfg.collector
         seed = self.batch_seed()
-        data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed)
+        data = self.system.simulate(int(c.env_batch), int(c.episode_steps), seed, device=self.device)
         y = data["measurement"]
         if any(self.training_gaps):
             generator = torch.Generator().manual_seed(gap_seed(seed))
             mask = training_dropout_mask(tuple(y.shape), *self.training_gaps, self.system.dt, generator)
-            y = y.masked_fill(mask, float("nan"))
+            y = y.masked_fill(mask.to(self.device), float("nan"))
         frames = self.filter.open_loop_frames(y, data["control"], data["prev_control"])
         windows = self.filter.layout.sliding_windows(frames)
         return windows.flatten(0, 1), data["state"].flatten(0, 1)
@@ -82,7 +83,7 @@ class SLFTrainer(FilterTrainer):
                     group["lr"] = float(self.cfg.optim.lr) * self.lr_factor()
                 with timeit("update"):
                     for _ in range(epochs):
-                        order = torch.randperm(windows.shape[0])
+                        order = torch.randperm(windows.shape[0]).to(self.device)
                         for idx in order.split(batch_size):
                             estimate = self.filter.estimate(windows[idx])
                             loss = ((estimate - targets[idx]).pow(2) * self.weights).sum(-1).mean()
