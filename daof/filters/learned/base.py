@@ -317,7 +317,7 @@ class LearnedFilter(nn.Module, Filter):
         whatever the data's. A finite value too large for that dtype is refused in one line.
         """
         checked = super().validate(data)
-        dtype = self.low.dtype
+        dtype = self.state_low.dtype
         cast = tuple(v.to(dtype) for v in checked)
         for key, before, after in zip(("measurement", "prev_control", "control"), checked, cast):
             overflow = torch.isfinite(before) & ~torch.isfinite(after)
