@@ -92,7 +92,7 @@ def test_slf_resumed_run_is_the_uninterrupted_run(tmp_path, monkeypatch):
 
 def test_same_seed_same_weights(tmp_path):
     """Two trainings of one config and seed end with identical weights; another seed does not."""
-    changes = {"collector.total_frames": TOTAL}
+    changes = {"collector.total_frames": STOP}
     a = trained(DSACTTrainer, tiny_cfg("config.yaml", tmp_path / "a", **changes))
     b = trained(DSACTTrainer, tiny_cfg("config.yaml", tmp_path / "b", **changes))
     assert_same_state(comparable(a), comparable(b))
