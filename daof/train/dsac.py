@@ -289,7 +289,7 @@ class DSACTTrainer(FilterTrainer):
     def _continue_episodes(self, collector: Collector) -> None:
         """After a resume: the new collector continues the checkpoint's episodes, with its generators.
 
-        Making the collector reset the env (new episodes, drawn from the env's generator or dealt from
+        Making the collector resets the env (new episodes, drawn from the env's generator or dealt from
         a replayed env's bank), so the episodes, the window, the carried step, the bank and every
         generator are put back after it.
         """
