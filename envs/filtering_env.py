@@ -124,6 +124,22 @@ class FilteringEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.rng.manual_seed(as_seed(seed) if seed is not None else 0)
 
+    # ----------------------------------------------------------------- episodes in flight
+    def episode_state(self) -> dict | None:
+        """The episodes under way (simulator state, last observation, fed-back estimate), as plain data.
+
+        With ``load_episode_state`` and the generator's state a resumed training continues them.
+        """
+        if self._sim is None:
+            return None
+        return {"sim": self._sim.to_dict(), "obs": self._obs.to_dict(), "prev_estimate": self._prev_estimate.clone()}
+
+    def load_episode_state(self, state: dict) -> None:
+        """Inverse of ``episode_state``."""
+        self._sim = TensorDict(state["sim"], batch_size=self.batch_size, device=self.device)
+        self._obs = TensorDict(state["obs"], batch_size=self.batch_size, device=self.device)
+        self._prev_estimate = state["prev_estimate"].to(self.device).clone()
+
     # ----------------------------------------------------------------- dynamics
     def _observation(self, reward_per_state: torch.Tensor | None = None) -> dict:
         if reward_per_state is None:

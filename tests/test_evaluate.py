@@ -4,6 +4,7 @@ through the one experiment entry (``daof.experiments``) and its config's refusal
 import json
 import math
 import re
+import runpy
 import shlex
 import shutil
 import subprocess
@@ -327,16 +328,18 @@ def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path, capsys):
     assert f"combined report: {tmp_path / 'report' / 'report.md'}" in capsys.readouterr().out
 
 
-def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path):
-    """As a user runs them: the README's recipe script and the shared entry, a bad profile each."""
-    for cmd in (
-        [sys.executable, SCRIPT, "profile=huge", f"root={tmp_path}"],
-        [sys.executable, "-m", "daof.experiments", "experiment=linear", "profile=huge", f"root={tmp_path}"],
-    ):
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
-        assert done.returncode != 0
-        assert done.stderr.strip().splitlines() == ["unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"]
-        assert "Traceback" not in done.stdout + done.stderr
+def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path, monkeypatch):
+    """A bad profile: the shared entry as a user runs it (a subprocess: one line on stderr, no
+    traceback), and the README's recipe script, which hands the same ``main`` its arguments, in process."""
+    cmd = [sys.executable, "-m", "daof.experiments", "experiment=linear", "profile=huge", f"root={tmp_path}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert done.returncode != 0
+    assert done.stderr.strip().splitlines() == ["unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"]
+    assert "Traceback" not in done.stdout + done.stderr
+    monkeypatch.setattr(sys, "argv", [SCRIPT, "profile=huge", f"root={tmp_path}"])
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(ROOT / SCRIPT), run_name="__main__")
+    assert str(stop.value) == "unknown profile 'huge'; valid: ['tiny', 'quick', 'paper']"
     assert not list(tmp_path.iterdir())
 
 

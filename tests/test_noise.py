@@ -175,6 +175,16 @@ def test_gaussian_log_prob_and_moments():
     assert abs(float(emp_cov[0, 1]) - 0.01) <= Z * se
 
 
+def test_gaussian_from_stds_has_those_stds():
+    """``GaussianNoise.diagonal(mean, std)`` (how the linear system states its noises) draws with std, not std²."""
+    std = torch.tensor([0.2, 0.05])
+    noise = GaussianNoise.diagonal([0.0, 1.0], std)
+    torch.testing.assert_close(noise.covariance, torch.diag(std**2))
+    s = draw(noise)
+    assert_mean_within_se(s, torch.tensor([0.0, 1.0]))
+    assert_var_within_se(s, std**2)
+
+
 ONE_D = {
     "gaussian": (GaussianNoise([0.3], [[2.0]]), 30.0),
     "mixture": (GaussianMixtureNoise(W, M, S, [1.0]), 30.0),

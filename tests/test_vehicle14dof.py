@@ -2,9 +2,10 @@
 
 The CI checks run one float32 batch (the default dtype) of 3 s at h = 1 ms: the nominal turn
 (App. A rows 1.5–3.0 s, which include the steady state), a steering sweep at 70 km/h (T6, T7),
-straight coasting (T2 start, T9) and the constant brake / drive torques of T8. The 12-s checks
-(all App. A rows, T2's u(10 s), T9's F_xw/F_z and κ at 10 s, T3 mirror symmetry at 1e-12 in float64,
-T4 over t ∈ [6, 9] s, T10 against h = 0.25 ms and h = 2 ms, compiled vs eager) are marked slow.
+straight coasting (T2 start, T9), the constant brake / drive torques of T8 and the nominal turn
+mirrored (T3 to float32 rounding); T10's h = 2 ms run against it. The 12-s checks (all App. A rows,
+T2's u(10 s), T9's F_xw/F_z and κ at 10 s, T3 mirror symmetry at 1e-12 in float64, T4 over
+t ∈ [6, 9] s, T10 against h = 0.25 ms, compiled vs eager) are marked slow.
 """
 
 from __future__ import annotations
@@ -119,9 +120,10 @@ CI_RUNS = (
         {"driver": 0.0},  # 6: coasting (T2, T9)
         {"driver": 0.0, "brake": 2000.0},  # 7: T8 braking
         {"driver": 0.0, "drive": 1000.0},  # 8: T8 driving
+        {"amp_deg": -50.0},  # 9: the nominal turn mirrored (T3)
     ]
 )
-NOMINAL, COAST, BRAKE, DRIVE = 0, 6, 7, 8
+NOMINAL, COAST, BRAKE, DRIVE, MIRROR = 0, 6, 7, 8, 9
 
 
 @pytest.fixture(scope="module")
@@ -413,7 +415,6 @@ def test_t10_rk4_stability_limit_at_low_speed():
     assert kappa_bad.max().item() == pytest.approx(0.015, rel=0.3)
 
 
-@pytest.mark.slow
 def test_t10_rk4_h2ms_stays_accurate(ci):
     """h = 2 ms vs the h = 1 ms CI run over the nominal turn to 3 s: below 2× the §6 h = 2 ms row."""
     sc = make_batch([CI_RUNS[NOMINAL]], F64)
@@ -425,6 +426,25 @@ def test_t10_rk4_h2ms_stays_accurate(ci):
     for idx, lim in limits.items():
         assert dev[idx].item() < 2 * lim, (idx, dev[idx].item(), lim)
     assert dev[24:28].max().item() < 2 * 2.0e-3
+
+
+def test_t3_mirror_symmetry_to_3s_float32(ci):
+    """T3 in CI: the nominal turn and its mirror image agree to float32 rounding.
+
+    (1e-5 of each channel's size, plus 1e-6 for the rounding the small channels inherit from the large ones.)
+    """
+    a, b = ci.x[NOMINAL].double(), ci.x[MIRROR].double()
+
+    def within(diff, ref):
+        assert diff.abs().max().item() <= 1e-5 * ref.abs().max().item() + 1e-6
+
+    for idx in (15, 19, 3, 5, 1, 17):  # v, r, φ, ψ, Y, φ̇ flip sign
+        within(a[:, idx] + b[:, idx], a[:, idx])
+    for idx in (14, 4, 2, 0, 18):  # u, θ, z_s, X, θ̇ equal
+        within(a[:, idx] - b[:, idx], a[:, idx])
+    swap = [1, 0, 3, 2]  # left and right wheels trade places
+    for sl in (slice(6, 10), slice(20, 24), slice(24, 28)):
+        within(a[:, sl] - b[:, sl][:, swap], a[:, sl])
 
 
 # ----------------------------------------------------------------------------- slow: 12 s

@@ -10,8 +10,9 @@ validation checkpoint is kept as the filter's result (early stopping on validati
 Checkpoints (``checkpoint.pt``) hold every piece of training state: actor, critics and their
 targets, α, σ̄, optimisers, counters, the global RNG states and the env's generator, the replay
 buffer (included, not rebuilt), the validation history and the logger state. They are written at
-batch boundaries; on resume the env starts fresh episodes (the in-flight partial episodes of the
-interrupted batch are not collected again).
+batch boundaries, with the episodes in flight (the env's simulator state, the window and the
+collector's carried step), so a resumed run continues those episodes and is the uninterrupted run
+bit for bit (``tests/test_resume_continuity.py``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from contextlib import AbstractContextManager, contextmanager, nullcontext
 
 import torch
 from omegaconf import DictConfig
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl._utils import timeit
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -34,6 +35,7 @@ from daof.filters.learned import DAOFv1
 from daof.losses import DSACTLoss, ForeachSoftUpdate
 from daof.train.base import FilterTrainer
 from daof.train.baseline import BASELINES, ZeroActionBaseline
+from daof.train.checkpoint import restore_rng
 from daof.train.networks import WINDOW_INITS, make_critic, start_on_newest_frame
 from daof.train.policies import exploration_policy, stochastic_actor
 from daof.train.schedules import reward_weight_schedule, ukf_schedule
@@ -62,6 +64,8 @@ class DSACTTrainer(FilterTrainer):
         self._make_loss()
         self._make_data()
         self.feedback()  # refuse an impossible collector.feedback before any work
+        self.collector: Collector | None = None  # while ``train`` runs
+        self._resume: dict | None = None  # what a resumed run restores once its collector exists
         self.deployed_weights()  # and an unknown validation.actor
 
     # ----------------------------------------------------------------- factories
@@ -268,6 +272,13 @@ class DSACTTrainer(FilterTrainer):
         bank = find_recorded(self.base_env.system)
         if bank is not None:  # the episodes a replayed env has yet to deal
             state["episode_bank"] = bank.state_dict()
+        if self.collector is not None:
+            state["in_flight"] = {
+                "env": self.base_env.episode_state(),
+                "window": self.env.transform.state_dict(),
+                "carrier": self.collector._carrier.clone(),
+                "traj_pool": self.collector._traj_pool.state_dict(),
+            }
         return state
 
     def load_extra_state(self, blob: dict) -> None:
@@ -279,6 +290,28 @@ class DSACTTrainer(FilterTrainer):
         bank = find_recorded(self.base_env.system)
         if bank is not None and "episode_bank" in blob:
             bank.load_state_dict(blob["episode_bank"])
+        self._resume = {"in_flight": blob.get("in_flight"), "rng": blob["rng"], "bank": blob.get("episode_bank")}
+
+    def _continue_episodes(self, collector: Collector) -> None:
+        """After a resume: the new collector continues the checkpoint's episodes, with its generators.
+
+        Making the collector resets the env (new episodes, drawn from the env's generator or dealt from
+        a replayed env's bank), so the episodes, the window, the carried step, the bank and every
+        generator are put back after it.
+        """
+        saved, self._resume = self._resume, None
+        if saved is None:
+            return
+        bank = find_recorded(self.base_env.system)
+        if bank is not None and saved["bank"] is not None:
+            bank.load_state_dict(saved["bank"])
+        if saved["in_flight"] is not None:
+            state = saved["in_flight"]
+            self.base_env.load_episode_state(state["env"])
+            self.env.transform.load_state_dict(state["window"])
+            collector._carrier = TensorDict(state["carrier"], batch_size=self.env.batch_size)
+            collector._traj_pool.load_state_dict(state["traj_pool"])
+        restore_rng(saved["rng"], self.generators())
 
     def generators(self) -> dict[str, torch.Generator]:
         return {"env": self.base_env.rng}
@@ -339,7 +372,8 @@ class DSACTTrainer(FilterTrainer):
         c = self.cfg.collector
         total = int(c.total_frames)
         bar = self.start(total)
-        collector = self._make_collector(total - self.frames)
+        collector = self.collector = self._make_collector(total - self.frames)
+        self._continue_episodes(collector)
         updates_per_batch = round(int(c.env_batch) * int(c.steps_per_batch) * float(self.cfg.optim.utd))
         try:
             for batch in collector:
@@ -361,5 +395,6 @@ class DSACTTrainer(FilterTrainer):
                 self.after_batch(bar, batch.numel(), log, total)
         finally:
             collector.shutdown()
+            self.collector = None
             bar.close()
         return self.finish()
