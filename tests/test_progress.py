@@ -25,3 +25,26 @@ def test_a_running_job_shows_its_eta(tmp_path):
     line = progress_line(TrainingJob("DAOF-v1", tmp_path, 1_600_000))
     assert line == "400k/1.6M frames (25 %), 2.0 min, ETA 6.0 min, validation RMSE beta 0.0105 yaw_rate 0.0254"
     assert progress_line(TrainingJob("DAOF-v2", tmp_path / "none", 10)) == "starting"
+
+
+def test_every_filter_reports_each_run_step_to_the_study_bar(lin):
+    from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter, StationaryKalmanFilter
+    from daof.filters.learned import FilterConfig, LearnedFilter
+
+    data = lin.simulate(3, 7, seed=0)
+    learned = LearnedFilter(FilterConfig(kind="DAOF-v2", system="linear", num_cells=8, window=3), lin)
+    kalmannet = LearnedFilter(FilterConfig(kind="KalmanNet", system="linear"), lin)
+    for filt in (
+        EKF(lin),
+        UKF(lin),
+        KalmanFilter(lin),
+        StationaryKalmanFilter(lin),
+        ParticleFilter(lin, 50),
+        learned,
+        kalmannet,
+    ):
+        done = []
+        filt.progress = done.append
+        filt.run(data)
+        filt.progress = None
+        assert sum(done) == 3 * 7, type(filt).__name__

@@ -1,4 +1,4 @@
-"""The numbers README.md and docs/*.md quote from committed reports, checked against their results.json.
+"""The numbers docs/results/README.md and docs/*.md quote from committed reports, checked against their results.json.
 
 Each check finds the sentence as the prose prints it and compares every number in it with the
 value recomputed from `docs/results/*/results.json`, to the printed digits (half a unit of the
@@ -89,7 +89,7 @@ def test_report_is_self_consistent(rel):
 
 
 def test_experiment1_ratios_to_oracle():
-    rep, doc = report("experiment1"), text("README.md")
+    rep, doc = report("experiment1"), text("docs/results/README.md")
     for prose, name in [
         ("PF (1,000 particles)", "PF"),
         ("DAOF-v1 (N = 20)", "DAOF-v1"),
@@ -111,7 +111,7 @@ def test_experiment1_ratios_to_oracle():
 
 def test_experiment1_daof_v1_below_ukf():
     """The headline: DAOF-v1 (N = 20) below the UKF on both states, by the quoted margins and intervals."""
-    rep, doc = report("experiment1"), text("README.md")
+    rep, doc = report("experiment1"), text("docs/results/README.md")
     v1, ukf, slf = rmse(rep, "DAOF-v1"), rmse(rep, "UKF"), rmse(rep, "SLF")
     assert (v1 < ukf).all()
     beta, r = quoted(doc, rf"below the UKF on both states\*\*: {NUM} % on β and {NUM} % on r")
@@ -145,7 +145,7 @@ def test_experiment1_paired_intervals_recomputed():
 
 
 def test_experiment1_window_study():
-    rep, doc = report("experiment1"), text("README.md")
+    rep, doc = report("experiment1"), text("docs/results/README.md")
     assert "Every window is below the UKF on both states. N = 20 is best on β and N = 1 on r" in doc
     windows = {w["window"]: np.asarray(w["rmse"]) for w in rep["window_study"]}
     assert all((v < rmse(rep, "UKF")).all() for v in windows.values())
@@ -159,7 +159,7 @@ def test_experiment1_window_study():
 
 
 def test_experiment1_budget_costs_and_time():
-    rep, doc = report("experiment1"), text("README.md")
+    rep, doc = report("experiment1"), text("docs/results/README.md")
     frames, updates = quoted(doc, rf"It trains on 3,200 episodes of 500 steps \({NUM}M frames, ~{NUM} updates\)")
     train = rep["training"]["DAOF-v1"]
     agrees(frames, train["frames"] / 1e6)
@@ -203,7 +203,7 @@ def geometric_ratio(a: np.ndarray, b: np.ndarray, seed: int = 0) -> tuple[float,
 
 
 def test_experiment2_ratios_and_intervals():
-    rep, doc = report("experiment2"), text("README.md")
+    rep, doc = report("experiment2"), text("docs/results/README.md")
     v2, slf = rmse(rep, "DAOF-v2"), rmse(rep, "SLF")
     pattern = " / ".join(rf"{NUM} \({s}(?:, level: per-run 95 % CI \[{NUM}, {NUM}\])?\)" for s in EXP2_STATES)
     printed = [p for p in quoted(doc, "DAOF-v2 / SLF = " + pattern) if p is not None]
@@ -244,7 +244,7 @@ def test_experiment2_report_table():
 
 def test_linear_requirement_met_from_per_run_rmse():
     """ "DAOF-v1 ≤ 1.05× KF per state": recomputed from the per-run RMSEs, not from the stored ratios."""
-    rep, doc = report("linear"), text("README.md")
+    rep, doc = report("linear"), text("docs/results/README.md")
     pooled = {n: np.sqrt((np.asarray(f["per_run_rmse"]) ** 2).mean(0)) for n, f in rep["filters"].items()}
     ratio = pooled["DAOF-v1"] / pooled["KF"]
     pos, vel, bound = quoted(doc, rf"DAOF-v1 is {NUM}× / {NUM}× the Kalman filter: the ≤ {NUM}× requirement is met")
@@ -269,7 +269,7 @@ def test_linear_requirement_met_from_per_run_rmse():
 
 
 def test_mismatch_claims():
-    rep, doc, nominal = report("experiment1-mismatch"), text("README.md"), report("experiment1")
+    rep, doc, nominal = report("experiment1-mismatch"), text("docs/results/README.md"), report("experiment1")
     best = min(rep["filters"], key=lambda n: rmse(rep, n)[0])
     assert best == "PF-joint" == min(rep["filters"], key=lambda n: rmse(rep, n)[1])
     b, r = quoted(doc, rf"wins both states: \[{NUM}, {NUM}\]")
@@ -337,7 +337,7 @@ def test_scenario_tables():
 
 
 def test_outliers_claims():
-    rep, doc = report("experiment1-scenarios-quick/outliers/report"), text("README.md")
+    rep, doc = report("experiment1-scenarios-quick/outliers/report"), text("docs/results/README.md")
     pf_b, pf_r, ukf_b, ukf_r = quoted(
         doc, rf"the PF wins on both states, \[{NUM}, {NUM}\] against the UKF's \[{NUM}, {NUM}\]"
     )
@@ -395,7 +395,7 @@ def test_missing_data_table_and_percentages():
 
 
 def test_missing_data_readme_summary():
-    doc = text("README.md")
+    doc = text("docs/results/README.md")
     full = report("experiment1-scenarios-quick/nominal/report")
     gaps = report("experiment1-scenarios-quick/nominal/report/dropout")
     p, blackout = quoted(doc, rf"Under the issue's dropout \({NUM} % gaps \+ {NUM} s yaw-rate blackout")
@@ -431,7 +431,7 @@ def test_pendulum_table_is_consistent():
 
 def test_experiment2_against_the_paper():
     """The claim "DAOF-v2 10–85× ahead ..., against an SLF 12–120× less accurate than ours" (the page's paper rows)."""
-    rep, doc = report("experiment2"), text("README.md")
+    rep, doc = report("experiment2"), text("docs/results/README.md")
     page = text("docs/results/experiment2/README.md")
     row = r" \| ".join([rf"\*{NUM}\*"] * 6)
     paper_slf = np.array([float(v) for v in quoted(page, rf"\| \*paper, SLF\* \| {row} \|")])

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDict
+from tqdm import tqdm
 
 from daof.envs.recorded import cache_key
 from daof.envs.system import StochasticSystem
@@ -92,8 +93,16 @@ def _cache_path(cache_dir: Path, name: str, dropout: dict | None = None) -> Path
     return cache_dir / (stem + ".pt")
 
 
-def _evaluate_one(filt, data: TensorDict, timing_threads: int, measure_cost: bool) -> tuple[FilterResult, torch.Tensor]:
-    rate, estimates, wall = throughput(filt, data)
+def _evaluate_one(
+    filt, data: TensorDict, timing_threads: int, measure_cost: bool, name: str = ""
+) -> tuple[FilterResult, torch.Tensor]:
+    # a bar per filter on a terminal (tqdm's disable=None: quiet elsewhere), fed by the filter's steps
+    with tqdm(total=data.numel(), desc=f"  {name}", unit="step", unit_scale=True, leave=False, disable=None) as bar:
+        filt.progress = bar.update
+        try:
+            rate, estimates, wall = throughput(filt, data)
+        finally:
+            filt.progress = None
     truth = data["state"]
     # the stats of the study's run: timing at batch 1 below runs the filter again
     stats = dict(getattr(filt, "stats", {}) or {})
@@ -169,7 +178,7 @@ def run_study(
         on_device = isinstance(filt, torch.nn.Module) and torch.device(device) != data.device
         if on_device and moved is None:
             moved = data.to(device)
-        result, est = _evaluate_one(filt, moved if on_device else data, timing_threads, measure_cost)
+        result, est = _evaluate_one(filt, moved if on_device else data, timing_threads, measure_cost, name)
         est = est.to(data.device)
         results[name], estimates[name] = result, est
         rmse = ", ".join(f"{v:.4g}" for v in result.rmse)

@@ -25,6 +25,8 @@ class Filter:
     """
 
     name: str = "filter"
+    #: called with the number of run-steps each filtering step finishes (a progress bar's ``update``)
+    progress = None
 
     def __init__(self, system: StochasticSystem):
         self.system = system
@@ -42,6 +44,13 @@ class Filter:
 
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
+
+    def _steps(self, runs: int, steps: int):
+        """``range(steps)``, reporting ``runs`` finished run-steps to ``progress`` after each step."""
+        for t in range(steps):
+            yield t
+            if self.progress is not None:
+                self.progress(runs)
 
     def run_streaming(self, data: TensorDictBase) -> torch.Tensor:
         """``run`` one estimate per step, as deployed; what the cost per estimate times.

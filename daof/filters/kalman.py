@@ -190,7 +190,7 @@ class _KalmanBase(Filter):
             kf = self._make()
             yr, upr, ur, gr = y[r], u_prev[r], u[r], gappy[r]
             try:
-                for t in range(steps):
+                for t in self._steps(1, steps):
                     kf.P = self.repair(kf.P)
                     if gr[t]:
                         self._step_missing(kf, yr[t], upr[t], ur[t], present[r, t])

@@ -96,7 +96,7 @@ class ParticleFilter(Filter):
         gappy = (~present).any(-1).any(0).tolist()
         resamples = 0
         diverged = torch.zeros(runs, dtype=torch.bool, device=y.device)
-        for t in range(steps):
+        for t in self._steps(runs, steps):
             # x_t^i = f(x_{t-1}^i, u_{t-1}) + ξ^i, ξ^i ~ the true process noise
             x = s.f(x, u_prev[:, t, None, :].expand(runs, n, -1)) + s.process_noise.sample((runs, n), generator)
             # w_t^i ∝ w_{t-1}^i p_ζ(y_t − g(x_t^i, u_t))

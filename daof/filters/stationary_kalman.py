@@ -45,7 +45,7 @@ class StationaryKalmanFilter(Filter):
         y, u_prev = y.double(), u_prev.double()
         x = self.x0.to(dev).expand(y.shape[0], -1)
         estimates = []
-        for t in range(y.shape[1]):
+        for t in self._steps(*y.shape[:2]):
             x = x @ A.T + u_prev[:, t] @ B.T
             innovation = torch.nan_to_num(y[:, t] - x @ C.T, nan=0.0)  # a missing channel adds nothing
             x = x + innovation @ K.T

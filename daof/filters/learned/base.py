@@ -410,7 +410,7 @@ class LearnedFilter(nn.Module, Filter):
         prev = self.system.prior.mean.to(y.device).expand(y.shape[0], -1).clone()
         layout = self.layout
         window = None
-        for t in range(y.shape[1]):
+        for t in self._steps(*y.shape[:2]):
             present = measured[:, t] if fill is None else fill(t, prev, measured[:, t])
             frame = self._frame(prev, present)
             # slide the window by one frame; right after the reset it is frame 1 behind N − 1 pads

@@ -162,7 +162,7 @@ class KalmanNet(LearnedFilter):
         if state is None:
             state = self.initial_state(y.shape[0], y.device, y.dtype)
         out = []
-        for t in range(y.shape[1]):
+        for t in self._steps(*y.shape[:2]):
             estimate, state = self.step(state, y[:, t], u_prev[:, t], u[:, t])
             out.append(estimate)
         return torch.stack(out, 1), state
