@@ -454,6 +454,7 @@ def test_linear_report_table():
         "PF (1,000)": "PF",
         "**DAOF-v1, N = 20**": "DAOF-v1",
         "DAOF-v2, N = 20 (increment form)": "DAOF-v2",
+        "**KalmanNet**": "KalmanNet",
     }
     cell = r"\**\[" + NUM + ", " + NUM + r"\]\**"
     for prose, name in rows.items():

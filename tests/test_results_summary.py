@@ -57,3 +57,4 @@ def test_linear_check_numbers_in_the_readme():
     f = _results("linear")["filters"]
     assert all(1.0 <= x <= 1.015 for x in f["DAOF-v1"]["ratio_to_oracle"])  # "within 1.5 %"
     assert [round(x, 1) for x in f["DAOF-v2"]["ratio_to_oracle"]] == [3.7, 1.8]
+    assert all(1.0 <= x <= 1.005 for x in f["KalmanNet"]["ratio_to_oracle"])  # "within 0.5 %"
