@@ -49,9 +49,9 @@ def is_learned(name: str) -> bool:
 
 #: filters with a fixed style in every report (others take the next free ones)
 KNOWN_SERIES = (
-    "EKF", "UKF", "PF", "PF-oracle", "PF-joint", "KF", "KF-stationary",
-    "SLF", "DAOF-v2", "DAOF-v1", "KalmanNet", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)",
-)  # fmt: skip
+    "DAOF-v1", "DAOF-v2", "SLF", "KalmanNet", "UKF", "EKF", "PF-oracle", "PF", "KF", "PF-joint",
+    "KF-stationary", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)",
+)  # fmt: skip  (the ten strong colours go to the filters every report shows)
 
 
 def series_styles(names) -> dict[str, dict]:
