@@ -15,38 +15,18 @@ the env's default weights W = 1/(n·error_scale²).
 from __future__ import annotations
 
 import torch
-from omegaconf import DictConfig
 from torchrl._utils import timeit
 
 from daof.filters.learned.kalmannet import KalmanNetState
-from daof.train.base import FilterTrainer
+from daof.train.supervised import SimulatedBatchTrainer
 
 __all__ = ["KalmanNetTrainer"]
 
 
-class KalmanNetTrainer(FilterTrainer):
+class KalmanNetTrainer(SimulatedBatchTrainer):
     """MSE with (truncated) BPTT over fresh simulated sequences; ``train()`` runs (or resumes) it."""
 
     kinds = ("KalmanNet",)
-
-    def __init__(self, cfg: DictConfig):
-        super().__init__(cfg)
-        o = cfg.optim
-        self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(o.lr), weight_decay=float(o.weight_decay))
-        s = self.system
-        self.weights = 1.0 / (s.state_dim * s.error_scale**2)
-        self.batches = 0
-
-    def extra_state(self) -> dict:
-        return {"optim": self.optim.state_dict(), "batches": self.batches}
-
-    def load_extra_state(self, blob: dict) -> None:
-        self.optim.load_state_dict(blob["optim"])
-        self.batches = blob["batches"]
-
-    def batch_seed(self) -> int:
-        """Simulation seed of the next batch: from the run's seed and the batch index (the SLF's rule)."""
-        return int(self.cfg.seeds.train) * 1_000_003 + self.batches
 
     def _update(self, data, idx: torch.Tensor) -> float:
         """Filter the episodes ``idx`` from x̂_0, one Adam step per ``bptt_steps`` segment; the mean loss."""

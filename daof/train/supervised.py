@@ -31,15 +31,15 @@ def gap_seed(simulation_seed: int) -> int:
     return int(np.random.SeedSequence([int(simulation_seed), 1]).generate_state(1, np.uint64)[0] >> 1)
 
 
-class SLFTrainer(FilterTrainer):
-    """Regression of x_t on the open-loop window; ``train()`` runs (or resumes) it."""
-
-    kinds = ("SLF",)
+class SimulatedBatchTrainer(FilterTrainer):
+    """Supervised training on batches of fresh simulated episodes (the SLF's, KalmanNet's): Adam, the
+    env's default loss weights W = 1/(n·error_scale²), and a batch counter that seeds each batch."""
 
     def __init__(self, cfg: DictConfig):
         super().__init__(cfg)
         self.system.to(self.device)
-        self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(cfg.optim.lr))
+        o = cfg.optim
+        self.optim = torch.optim.Adam(self.filter.parameters(), lr=float(o.lr), weight_decay=float(o.weight_decay))
         s = self.system
         self.weights = 1.0 / (s.state_dim * s.error_scale**2)
         self.batches = 0
@@ -54,6 +54,12 @@ class SLFTrainer(FilterTrainer):
     def batch_seed(self) -> int:
         """Simulation seed of the next batch: from the run's seed and the batch index."""
         return int(self.cfg.seeds.train) * 1_000_003 + self.batches
+
+
+class SLFTrainer(SimulatedBatchTrainer):
+    """Regression of x_t on the open-loop window; ``train()`` runs (or resumes) it."""
+
+    kinds = ("SLF",)
 
     def _dataset(self) -> tuple[torch.Tensor, torch.Tensor]:
         """One batch of fresh episodes as (windows [M, N·F], targets [M, n])."""

@@ -124,11 +124,7 @@ class LearnedFilter(nn.Module, Filter):
         """Refuse the options this class cannot honour (``FilterConfig`` calls it on construction)."""
 
     def __init__(self, config: FilterConfig, system: StochasticSystem | None = None):
-        nn.Module.__init__(self)
-        Filter.__init__(self, system or make_system(config.system, config.scenario))
-        self.config = config
-        self.name = config.kind
-        self._check_system()
+        self._bind(config, system)
         s = self.system
         #: the window this filter reads: an env must build the same (``check_env``)
         self.layout = FrameLayout.for_system(
@@ -155,10 +151,21 @@ class LearnedFilter(nn.Module, Filter):
         low, high = self._action_bounds()
         self.register_buffer("low", low.float())
         self.register_buffer("high", high.float())
-        # every estimate stays in the system's plausible state range (the env's action spec)
-        self.register_buffer("state_low", s.state_low.clone().float())
-        self.register_buffer("state_high", s.state_high.clone().float())
+        self._register_state_range()
         self.missing_fill = self.missing_fills[0]
+
+    def _bind(self, config: FilterConfig, system: StochasticSystem | None) -> None:
+        """What every learned filter starts with: the module, its system (checked), its config."""
+        nn.Module.__init__(self)
+        Filter.__init__(self, system or make_system(config.system, config.scenario))
+        self.config = config
+        self.name = config.kind
+        self._check_system()
+
+    def _register_state_range(self) -> None:
+        """Every estimate stays in the system's plausible state range (the env's action spec)."""
+        self.register_buffer("state_low", self.system.state_low.clone().float())
+        self.register_buffer("state_high", self.system.state_high.clone().float())
 
     # ----------------------------------------------------------------- subclass hooks
     def _check_system(self) -> None:

@@ -29,8 +29,6 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from daof.envs.registry import make_system
-from daof.filters.base import Filter
 from daof.filters.learned.base import LearnedFilter, register
 
 __all__ = ["STATE_KEYS", "GainNet", "KalmanNet", "KalmanNetState"]
@@ -96,19 +94,14 @@ class KalmanNet(LearnedFilter):
     missing_fills = ("prediction",)
 
     def __init__(self, config, system=None):
-        nn.Module.__init__(self)
-        Filter.__init__(self, system or make_system(config.system, config.scenario))
-        self.config = config
-        self.name = config.kind
-        self._check_system()
+        self._bind(config, system)
         s = self.system
         n, m = s.state_dim, s.measurement_dim
         self.gain_net = GainNet(n, m, config.kalmannet_in_mult, config.kalmannet_out_mult)
         # the channels' scales the features are divided by and the gain is expressed in (``fit_normalizer``)
         self.register_buffer("state_scale", torch.ones(n))
         self.register_buffer("measurement_scale", torch.ones(m))
-        self.register_buffer("state_low", s.state_low.clone().float())
-        self.register_buffer("state_high", s.state_high.clone().float())
+        self._register_state_range()
         self.register_buffer("prior_mean", s.prior.mean.detach().clone().float())
         self.missing_fill = self.missing_fills[0]
 
