@@ -17,9 +17,9 @@ writes ``fed_back_estimate`` (``FEEDBACK_KEY``): then that is fed back while the
 action. A DSAC-T collector uses it to feed back the policy's deterministic estimate, the one the
 deployed filter feeds back, and to explore in the reward only (``daof.train.dsac``, ``collector.feedback``).
 
-Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (about
-the RMSE of a near-optimal filter per state), so a near-optimal filter earns about −1 per step
-and both states count equally relative to what is achievable.
+Reward weights. By default W = diag(1 / (n · s_i²)) with s the system's ``error_scale`` (the
+typical error of a decent filter per state, from the system's data: ``daof.envs.scales``), so such
+a filter earns about −1 per step and the states count equally relative to what is achievable.
 """
 
 from __future__ import annotations

@@ -86,13 +86,6 @@ class LinearOscillator(StochasticSystem):
         self.prior = GaussianNoise.diagonal([0.0, 0.0], p.prior_std)
         self.process_noise = GaussianNoise.diagonal([0.0, 0.0], p.process_std)
         self.measurement_noise = GaussianNoise.diagonal([0.0], [p.measurement_std])
-        self.state_low = torch.tensor([-5.0, -15.0])
-        self.state_high = torch.tensor([5.0, 15.0])
-        _, P_post = stationary_kalman_covariance(
-            self.A, self.C, self.process_noise.covariance, self.measurement_noise.covariance
-        )
-        # The stationary Kalman filter's RMSE per state: a perfect filter earns about −1 per step.
-        self.error_scale = P_post.diagonal().sqrt().float()
 
     def f(self, x, u):
         return x @ self.A.T + u @ self.B.T

@@ -43,15 +43,54 @@ class StochasticSystem:
     prior: GaussianNoise
     process_noise: Noise
     measurement_noise: Noise
-    #: plausible range of every estimated state (the action spec of the filtering env)
-    state_low: torch.Tensor
-    state_high: torch.Tensor
-    #: typical error of a good filter per state; the env's default reward weights are 1/(n·s²)
-    error_scale: torch.Tensor
     #: whether filters may call f and g (False for simulator-only systems such as veh14dof)
     has_model: bool = True
     #: observations also carry ``missing`` (0/1 per measurement channel): ``daof.envs.gaps.GappySystem``
     reports_missing: bool = False
+
+    # ----------------------------------------------------------------- scales from data
+    def scales(self):
+        """Output range and error scale per state from the system's simulated data (``daof.envs.scales``)."""
+        from daof.envs.scales import data_scales
+
+        return data_scales(self)
+
+    def _scale(self, name: str, field: str) -> torch.Tensor:
+        """An override set on this system (``system.state_low = ...``), else the data's value."""
+        value = self.__dict__.get(name)
+        if value is not None:
+            return value
+        value = getattr(self.scales(), field)
+        for where in self.__dict__.get("_moves", ()):  # where ``to`` has put the system's tensors
+            value = value.to(where)
+        return value
+
+    @property
+    def state_low(self) -> torch.Tensor:
+        """Lower end of the output range per state: the env's action spec, where learned estimates stop."""
+        return self._scale("_state_low", "low")
+
+    @state_low.setter
+    def state_low(self, value) -> None:
+        self._state_low = None if value is None else torch.as_tensor(value, dtype=torch.float32)
+
+    @property
+    def state_high(self) -> torch.Tensor:
+        """Upper end of the output range per state."""
+        return self._scale("_state_high", "high")
+
+    @state_high.setter
+    def state_high(self, value) -> None:
+        self._state_high = None if value is None else torch.as_tensor(value, dtype=torch.float32)
+
+    @property
+    def error_scale(self) -> torch.Tensor:
+        """Typical error of a decent filter per state; the env's default reward weights are 1/(n·s²)."""
+        return self._scale("_error_scale", "error")
+
+    @error_scale.setter
+    def error_scale(self, value) -> None:
+        self._error_scale = None if value is None else torch.as_tensor(value, dtype=torch.float32)
 
     # ----------------------------------------------------------------- dimensions
     @property
@@ -229,6 +268,7 @@ class StochasticSystem:
     def to(self, device) -> StochasticSystem:
         """Move noises and tensor attributes to ``device`` (in place)."""
         self.__dict__.pop("_float64_twin", None)  # the model's numpy wrapper makes a new one
+        self._moves = [*self.__dict__.get("_moves", ()), device]  # the data scales follow (``_scale``)
         for noise in (self.prior, self.process_noise, self.measurement_noise):
             noise.to(device)
         for name, value in vars(self).items():
@@ -271,9 +311,6 @@ class SystemWrapper(StochasticSystem):
         "prior",
         "process_noise",
         "measurement_noise",
-        "state_low",
-        "state_high",
-        "error_scale",
         "has_model",
     )
 
@@ -307,8 +344,13 @@ class SystemWrapper(StochasticSystem):
     def truth(self, x):
         return self.base.truth(x)
 
+    def scales(self):
+        return self.base.scales()
+
+    def _scale(self, name: str, field: str) -> torch.Tensor:
+        value = self.__dict__.get(name)
+        return value if value is not None else self.base._scale(name, field)
+
     def to(self, device) -> SystemWrapper:
         self.base.to(device)
-        for attr in ("state_low", "state_high", "error_scale"):
-            setattr(self, attr, getattr(self.base, attr))
         return self

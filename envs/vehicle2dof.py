@@ -91,10 +91,6 @@ class Vehicle2DOF(StochasticSystem):
             self.measurement_noise = OutlierLaplaceNoise(p.measurement_scale, p.outlier_prob, p.outlier_magnitude)
         else:
             self.measurement_noise = LaplaceNoise(p.measurement_scale)
-        self.state_low = torch.tensor([-0.3, -1.5])
-        self.state_high = torch.tensor([0.3, 1.5])
-        # About the RMSE of a near-optimal particle filter on the nominal scenario (spec).
-        self.error_scale = torch.tensor([0.01, 0.025])
         l = p.lf + p.lr
         self.Fzf = p.m * p.g * p.lr / l
         self.Fzr = p.m * p.g * p.lf / l

@@ -19,8 +19,9 @@ def test_passes_gymnasium_env_checker():
     env = gymnasium.make(GYM_ID)
     check_env(env.unwrapped, skip_render_check=True)
     assert env.observation_space.shape == (20 * 6,) and env.observation_space.dtype == np.float32
-    np.testing.assert_array_equal(env.action_space.low, np.float32([-0.3, -1.5]))
-    np.testing.assert_array_equal(env.action_space.high, np.float32([0.3, 1.5]))
+    system = env.unwrapped.system  # the action box is the system's output range (from its data)
+    np.testing.assert_array_equal(env.action_space.low, system.state_low.numpy())
+    np.testing.assert_array_equal(env.action_space.high, system.state_high.numpy())
 
 
 @pytest.mark.parametrize("scenario", ["nominal", "mismatch"])
@@ -57,7 +58,7 @@ def test_window_layout_and_reward_formula():
     np.testing.assert_array_equal(frames1[:-1], frames[1:])  # oldest frame dropped
     np.testing.assert_array_equal(frames1[-1, :2], a)  # newest frame carries x̂_{t−1} = the action
     np.testing.assert_array_equal(frames1[-1, 5], frames[-1, 4])  # u_{t−1} of the new frame = old u_t
-    w = 1.0 / (2 * np.array([0.01, 0.025]) ** 2)  # default W = 1/(n·error_scale²)
+    w = 1.0 / (2 * env.system.error_scale.double().numpy() ** 2)  # default W = 1/(n·error_scale²)
     assert reward == pytest.approx(-float((w * (info0["true_state"] - a) ** 2).sum()), rel=1e-5)
     # Truncated (not terminated) after exactly max_steps estimates.
     flags = [env.step(a)[2:4] for _ in range(3)]

@@ -59,7 +59,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # the trainings: python -m daof.train system=linear filter=daof_v1|daof_v2 with the profile's overrides
     assert set(results["training"]) == {"DAOF-v1", "DAOF-v2", "KalmanNet"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
-    # DAOF-v2 acts by increments, as in Experiment I (daof/conf/tuning/linear_daof_v2.yaml)
+    # DAOF-v2 acts by increments, its default (daof/conf/filter/daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20-s1" / "run_config.json").read_text())
     assert v2_config["network"]["v2_action"] == "increment"
     assert f"report: {report / 'report.md'}" in out

@@ -74,7 +74,9 @@ def test_the_study_flags_a_run_far_above_the_reference_on_that_run():
 def test_the_study_flags_an_estimate_outside_the_plausible_range(veh):
     """An RMSE below 10x the reference's is still diverged when an estimate leaves the limits."""
     estimates = torch.zeros(2, 5, 2)
-    estimates[1, 3, 0] = 0.95  # past β's limit 0.9 rad (0.3 widened by its range)
+    low, high = veh.divergence_limits()  # the output range widened by its width on each side
+    assert torch.allclose(high - low, 3 * (veh.state_high - veh.state_low).double())
+    estimates[1, 3, 0] = float(high[0]) * 1.05  # just past β's limit
     rows = {
         name: FilterResult(
             rmse=[1.0, 1.0], per_run_rmse=[[1.0, 1.0], [1.0, 1.0]], cost_ms=1, threads=1, throughput_per_s=1
@@ -175,7 +177,9 @@ def test_the_report_shows_diverged_runs_and_bound_hits(veh, tmp_path):
     assert "| at a bound (beta / yaw_rate) |" in text
     ekf_row = next(line for line in text.splitlines() if line.startswith("| EKF |"))
     assert ekf_row.endswith("| 1 | 0 | – |")
-    assert "widened by its width on each side (beta [-0.9, 0.9] rad, yaw_rate [-4.5, 4.5] rad/s)" in text
+    low, high = veh.divergence_limits()
+    limits = f"beta [{low[0]:.3g}, {high[0]:.3g}] rad, yaw_rate [{low[1]:.3g}, {high[1]:.3g}] rad/s"
+    assert f"widened again by its width on each side ({limits})" in " ".join(text.split())
     assert "above 10x PF-oracle's RMSE on the same run" in text
 
 

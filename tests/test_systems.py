@@ -95,17 +95,6 @@ def test_linear_zoh_matrices_match_scipy_expm():
     np.testing.assert_allclose(system.g(x, u).numpy(), x[:, :1].numpy())
 
 
-def test_linear_error_scale_is_the_stationary_kalman_rmse():
-    system = make_system("linear")
-    A, C = system.A.double().numpy(), system.C.double().numpy()
-    Q = system.process_noise.covariance.double().numpy()
-    R = system.measurement_noise.covariance.double().numpy()
-    P = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)  # predicted covariance
-    K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
-    P_post = (np.eye(2) - K @ C) @ P
-    np.testing.assert_allclose(system.error_scale.numpy(), np.sqrt(np.diag(P_post)), rtol=1e-4)
-
-
 # ----------------------------------------------------------------------------- simulate
 @pytest.mark.parametrize("name", ["veh2dof", "linear"])
 def test_simulate_shapes_dtype_and_seeding(name):

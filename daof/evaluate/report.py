@@ -263,8 +263,9 @@ def _divergence_sentence(study, ref: str | None) -> str:
     low, high = s.divergence_limits()
     limits = ", ".join(f"{n} [{lo:.3g}, {hi:.3g}] {u}" for n, u, lo, hi in zip(s.state_names, s.state_units, low, high))
     text = (
-        "a diverged run has a non-finite estimate, or one outside the plausible state range widened by its width "
-        f"on each side ({limits})"
+        "a diverged run has a non-finite estimate, or one outside the output range (the range of the system's "
+        "simulated states widened by its width on each side) widened again by its width on each side "
+        f"({limits})"
     )
     if ref is not None:
         text += f", or an RMSE above {DIVERGENCE_FACTOR:g}x {ref}'s RMSE on the same run"

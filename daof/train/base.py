@@ -83,6 +83,9 @@ def _check_resumable(blob: dict, path) -> None:
 class FilterTrainer:
     """Base of the training runs of the filter kinds in ``kinds`` (``cfg.kind`` says which one)."""
 
+    #: whether the untrained filter is already a filter worth keeping (DAOF-v1 starts at its reference update)
+    starts_as_a_filter = False
+
     #: the filter kinds this trainer learns
     kinds: tuple[str, ...] = ()
 
@@ -274,7 +277,7 @@ class FilterTrainer:
             record[f"rmse_{name}"] = value if math.isfinite(value) else float("inf")
         # one number to rank checkpoints: mean RMSE relative to the system's error scale
         finite = bool(torch.isfinite(rmse).all())
-        record["score"] = float((rmse / self.system.error_scale).mean()) if finite else float("inf")
+        record["score"] = float((rmse / self.filter.error_scale.to(rmse)).mean()) if finite else float("inf")
         return record
 
     @torch.no_grad()
@@ -331,8 +334,9 @@ class FilterTrainer:
                 record = self.validate()
             self.history.append(record)
             log.update({f"val/{k}": v for k, v in record.items() if k.startswith("rmse")})
-            # the validation before the first update is the untrained network: on the curve, never the result
-            if self.updates > 0 and record["score"] < self.best["score"]:
+            # the validation before the first update is the untrained network: on the curve, and the result
+            # only where it is already a filter (DAOF-v1's reference update), which training may not beat
+            if (self.updates > 0 or self.starts_as_a_filter) and record["score"] < self.best["score"]:
                 self.best = {"score": record["score"], "frames": self.frames, "record": record}
                 self.save_filter("best.pt")
             rmse = {k[5:]: f"{v:.4g}" for k, v in record.items() if k.startswith("rmse_")}

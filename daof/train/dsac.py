@@ -60,6 +60,7 @@ class DSACTTrainer(FilterTrainer):
         self.system.to(self.device)  # after the schedules: their UKF run simulates on the CPU
         if isinstance(self.filter, DAOFv1):  # its update is K̄_t ν_t + a residual that starts at 0
             self._start_at_the_reference()
+            self.starts_as_a_filter = True
         self._init_window(self.filter.policy.mlp)
         self._make_loss()
         self._make_data()
@@ -168,7 +169,7 @@ class DSACTTrainer(FilterTrainer):
         k = float(self.cfg.loss.exploration_std)
         if k <= 0:
             raise ValueError(f"loss.exploration_std must be > 0, got {k}")
-        return torch.minimum(k * self.system.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
+        return torch.minimum(k * self.filter.error_scale / self.filter.action_scale, MAX_EXPLORATION_STD * width / 2)
 
     def target_entropy(self) -> float:
         """Entropy of exploration noise of ``loss.exploration_std`` error scales per state.

@@ -47,6 +47,10 @@ def truth(x: torch.Tensor, a_x: torch.Tensor) -> torch.Tensor:
     return torch.stack([x[:, 4], x[:, 3], x[:, 19], beta, x[:, 14], a_x], -1)
 
 
+#: the prior's std where a state is exactly 0 at t = 0, in report units [°, °, °/s, °, km/h, g]
+PRIOR_STD_FLOOR = torch.tensor([0.001, 0.002, 0.005, 0.002, 0.003, 0.0001])
+
+
 class Vehicle14DOF(StochasticSystem):
     """14-DOF passenger car in the randomised "large curvature turning" manoeuvre."""
 
@@ -72,12 +76,6 @@ class Vehicle14DOF(StochasticSystem):
         self._consts: dict[str, Constants] = {}
         self._substeps: dict[str, object] = {}
         self.report_scale = torch.tensor([1 / DEG, 1 / DEG, 1 / DEG, 1 / DEG, 1 / KMH, 1 / G])
-        # Rough RMSE of a good filter, in report units [0.1°, 0.2°, 0.5°/s, 0.2°, 0.3 km/h, 0.01 g],
-        # converted to SI; the env's reward weights are W = 1/(n·s²) so per-step rewards are O(1).
-        self.error_scale = torch.tensor([0.1, 0.2, 0.5, 0.2, 0.3, 0.01]) / self.report_scale
-        # Action bounds: ±3° pitch, ±10° roll, ±60°/s, ±15° slip, 40–100 km/h, ±0.5 g.
-        self.state_low = torch.tensor([-3.0, -10.0, -60.0, -15.0, 40.0, -0.5]) / self.report_scale
-        self.state_high = torch.tensor([3.0, 10.0, 60.0, 15.0, 100.0, 0.5]) / self.report_scale
         w = p.dist_weights
         self.process_noise = GaussianMixtureNoise(w, (0.0, 0.0), p.dist_std_ratio, p.dist_scale, joint=p.dist_joint)
         b = laplace_scale(p)
@@ -109,7 +107,7 @@ class Vehicle14DOF(StochasticSystem):
         """Mean and std of the six states at t = 0 over V0 ~ U[60, 80] km/h (§5.11, driver on).
 
         Evaluated on a fine V0 grid (the midpoint rule for the uniform law); states that are
-        exactly 0 at t = 0 get a floor of 1 % of ``error_scale`` so the covariance is definite.
+        exactly 0 at t = 0 get the floor ``PRIOR_STD_FLOOR`` so the covariance is definite.
         """
         c = Constants(self.p, torch.float64, "cpu")
         lo, hi = self.p.v0_kmh
@@ -120,7 +118,7 @@ class Vehicle14DOF(StochasticSystem):
         delta_sw, T_d, T_b, _ = drive_inputs(x, zeros, zeros, man, c, self.p.h)
         _, aux = rhs(x, delta_sw, T_d, T_b, torch.zeros(200, 2, dtype=torch.float64), c, with_aux=True)
         s = truth(x, aux.a_x)
-        std = torch.maximum(s.std(0, correction=0), 0.01 * self.error_scale.double())
+        std = torch.maximum(s.std(0, correction=0), PRIOR_STD_FLOOR.double() / self.report_scale.double())
         return GaussianNoise.diagonal(s.mean(0).float(), std.float())
 
     def time(self, t: torch.Tensor) -> torch.Tensor:

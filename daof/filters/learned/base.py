@@ -163,9 +163,11 @@ class LearnedFilter(nn.Module, Filter):
         self._check_system()
 
     def _register_state_range(self) -> None:
-        """Every estimate stays in the system's plausible state range (the env's action spec)."""
+        """The system's scales, kept with the weights: every estimate stays in its output range (the
+        env's action spec) and ``error_scale`` sized the training (``daof.envs.scales``)."""
         self.register_buffer("state_low", self.system.state_low.clone().float())
         self.register_buffer("state_high", self.system.state_high.clone().float())
+        self.register_buffer("error_scale", self.system.error_scale.clone().float())
 
     # ----------------------------------------------------------------- subclass hooks
     def _check_system(self) -> None:

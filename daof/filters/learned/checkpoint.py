@@ -76,6 +76,8 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
     if system is None and overrides:
         system = make_system(config.system, config.scenario, **overrides)
     module = LearnedFilter(config, system)
+    if "error_scale" not in state:  # saved before the scales came from data: the system's, as it trained
+        state = {**state, "error_scale": module.error_scale}
     try:
         module.load_state_dict(state)
     except RuntimeError as error:  # saved by another version of the filter (other inputs or sizes)

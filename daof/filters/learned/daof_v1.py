@@ -2,7 +2,8 @@
 learned, bounded residual.
 
 π ∈ [−1, 1]ⁿ; K̄_t is a UKF's mean Kalman gain at step t, ν_t the innovation of the prediction and
-b_t = correction_sigmas · that UKF's √diag P⁺_t (``set_schedules``). Where its frame allows (it holds
+b_t = correction_sigmas · max(that UKF's √diag P⁺_t, its RMSE on the system's simulated data,
+``error_scale``) (``set_schedules``). Where its frame allows (it holds
 u_t and u_{t−1}, or the system has no controls) the network also reads ν_t / √diag S_t. A missing
 measurement reads as its prediction (``missing_fill``).
 """
@@ -98,7 +99,10 @@ class DAOFv1(UpdateFilter):
             return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
 
         sigmas = self.config.correction_sigmas
-        self.correction_scale.copy_(sigmas * rows(schedule["estimate"]).clamp_min(1e-12))
+        # never narrower than the reference's actual error on simulated data: a UKF that claims less
+        # than it reaches (far from optimal, overconfident) leaves the residual room to correct it
+        claimed = rows(schedule["estimate"]).clamp_min(1e-12)
+        self.correction_scale.copy_(sigmas * torch.maximum(claimed, self.error_scale.to(claimed)))
         self.reference_gain.copy_(rows(schedule["gain"]))
         if self.innovation_input:
             self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
