@@ -49,20 +49,8 @@ def is_learned(name: str) -> bool:
 
 #: filters with a fixed style in every report (others take the next free ones)
 KNOWN_SERIES = (
-    "DAOF-v1",
-    "DAOF-v2",
-    "SLF",
-    "KalmanNet",
-    "UKF",
-    "EKF",
-    "PF-oracle",
-    "PF",
-    "KF",
-    "PF-joint",
-    "KF-stationary",
-    "DAOF-v1 (N=10)",
-    "DAOF-v1 (N=5)",
-    "DAOF-v1 (N=1)",
+    "DAOF-v1", "DAOF-v2", "SLF", "KalmanNet", "UKF", "EKF", "PF-oracle", "PF", "KF", "PF-joint",
+    "KF-stationary", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)",
 )  # fmt: skip  (the ten strong colours go to the filters every report shows)
 
 
