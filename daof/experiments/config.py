@@ -143,6 +143,7 @@ class ExperimentConfig:
     training_overrides: list[str] = field(default_factory=list)  # overrides of every training
     sweep_override: str | None = None  # one training override applied after all others (daof.experiments.sweep)
     window_study: str | None = None  # a learned row trained again at every N of the profile's windows
+    classical_only: bool = False  # leave out the learned rows: study and report the classical filters (a first check)
     classical: dict[str, ClassicalFilter] = field(default_factory=dict)  # study row -> model-based filter
     reference: list[str] = field(default_factory=list)  # the study's reference: the first of these that runs
     convergence_check: ConvergenceCheck | None = None
@@ -228,6 +229,15 @@ def compose_experiment(name: str, overrides: list[str] = ()) -> DictConfig:
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ValueError(f"experiment {name}: key(s) {missing} have no value")
+    if cfg.classical_only:  # no learned row, no budget, no window study; what names a learned row goes too
+        learned = set(cfg.learned)
+        cfg.learned, cfg.window_study = {}, None
+        cfg.reference = [r for r in cfg.reference if r not in learned]
+        cfg.requirements = {k: v for k, v in cfg.requirements.items() if k not in learned}
+        if cfg.report.paired_with in learned:
+            cfg.report.paired_with = None
+        for profile in cfg.profiles.values():
+            profile.frames, profile.overrides, profile.windows = {}, {}, []
     return cfg
 
 
