@@ -71,6 +71,19 @@ class NoParams(TinySystem):
         super().__init__("nominal", TinyParams())
 
 
+class SimulatorOnly(TinySystem):
+    """A simulator and nothing for filters to call (like veh14dof): it draws x and y itself."""
+
+    has_model = False
+    f, g = StochasticSystem.f, StochasticSystem.g
+
+    def transition(self, x, u, params, generator):
+        return TinySystem.f(self, x, u) + self.process_noise.sample(x.shape[:-1], generator)
+
+    def measure(self, x, u, params, generator):
+        return TinySystem.g(self, x, u) + self.measurement_noise.sample(x.shape[:-1], generator)
+
+
 class Broken(StochasticSystem):
     def __init__(self, scenario="nominal"):
         raise RuntimeError("cannot build")
@@ -235,3 +248,23 @@ def test_the_ungm_example_is_the_papers_model(monkeypatch):
     torch.testing.assert_close(data["prev_control"][0, :, 0], 8 * torch.cos(1.2 * torch.arange(3.0)))
     noise = [system.prior.covariance, system.process_noise.covariance, system.measurement_noise.covariance]
     assert [float(c) for c in noise] == pytest.approx([5.0, 10.0, 1.0])
+
+
+def test_a_simulator_only_system_trains_model_free_filters_and_refuses_model_based_ones(tmp_path):
+    from daof.filters import UKF
+    from daof.filters.learned import make_filter
+    from daof.train.__main__ import train
+    from daof.train.config import compose_config
+
+    path = f"{__name__}:SimulatorOnly"
+    small = ["network.num_cells=8", "collector.env_batch=4", "collector.episode_steps=30", "validation.runs=2",
+             "validation.steps=20", "validation.every_frames=240", "checkpoint.every_frames=240"]  # fmt: skip
+    cfg = compose_config(["filter=slf", f"system={path}", "window=4", "collector.total_frames=240", *small,
+                          f"output_dir={tmp_path}"])  # fmt: skip
+    summary = train(cfg)
+    assert summary["frames"] >= 240 and (tmp_path / "best.pt").is_file()
+    system = make_system(path)
+    with pytest.raises(ValueError, match="DAOF-v1 needs a model predictor"):
+        make_filter("DAOF-v1", system=system, window=4)
+    with pytest.raises(NotImplementedError, match="offers no transition model"):
+        UKF(system).run(system.simulate(1, 3, seed=0))
