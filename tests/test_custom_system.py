@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -268,3 +269,21 @@ def test_a_simulator_only_system_trains_model_free_filters_and_refuses_model_bas
         make_filter("DAOF-v1", system=system, window=4)
     with pytest.raises(NotImplementedError, match="offers no transition model"):
         UKF(system).run(system.simulate(1, 3, seed=0))
+
+
+def test_the_ungm_numbers_the_docs_quote_are_the_committed_reports():
+    """docs/custom_system.md and the log quote the classical-only UNGM report: ratios and the PF's convergence."""
+    root = Path(__file__).resolve().parents[1]
+    results = json.loads((root / "docs/results/ungm-classical/results.json").read_text())
+    assert results["reference"] == "PF-oracle" and results["runs"] == 100 and results["steps"] == 100
+    ratio = {name: f["rmse"][0] / results["filters"]["PF-oracle"]["rmse"][0] for name, f in results["filters"].items()}
+    change = re.search(
+        r"with 40000 its RMSE changes by ([\d.]+) %", (root / "docs/results/ungm-classical/report.md").read_text()
+    )
+    quoted = f"UKF {ratio['UKF']:.2f}×, EKF {ratio['EKF']:.2f}× the PF-oracle, whose RMSE moves {change[1]} %"
+    assert quoted in " ".join((root / "docs/custom_system.md").read_text().split())
+    log = " ".join((root / "docs/log/2026-12-07-custom-systems.md").read_text().split())
+    assert f"9.201 ({ratio['UKF']:.2f}×)" in log and f"20.89 ({ratio['EKF']:.2f}×)" in log and f"{change[1]} %" in log
+    assert (
+        ratio["UKF"] >= 1.3 and float(change[1]) < 1.0
+    )  # what the example was chosen for: a gap, a converged reference
