@@ -25,7 +25,16 @@ from pathlib import Path
 
 from daof.envs.system import StochasticSystem
 
-__all__ = ["ENTRY_POINT_GROUP", "SYSTEMS", "import_root", "make_system", "register_system", "system_class"]
+__all__ = [
+    "ENTRY_POINT_GROUP",
+    "SYSTEMS",
+    "import_root",
+    "is_import_path",
+    "make_system",
+    "register_system",
+    "system_class",
+    "system_entry_point",
+]
 
 #: name -> (system class, parameter dataclass); filled by register_system
 SYSTEMS: dict[str, tuple[Callable[..., StochasticSystem], type]] = {}
@@ -67,7 +76,7 @@ def _import_class(path: str) -> type:
     return obj
 
 
-def _entry_point(name: str):
+def system_entry_point(name: str):
     """The ``daof.systems`` entry point called ``name``, or None."""
     return next(iter(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP, name=name)), None)
 
@@ -79,7 +88,7 @@ def system_class(name: str) -> tuple[type, type | None]:
     if is_import_path(name):
         cls = _import_class(name)
     else:
-        entry = _entry_point(name)
+        entry = system_entry_point(name)
         if entry is None:
             raise ValueError(
                 f"unknown system {name!r}; known systems: {sorted(SYSTEMS)}, "

@@ -202,6 +202,9 @@ def test_an_entry_point_names_a_system(monkeypatch):
     )
     system = make_system("tiny_ep", r=0.3)
     assert type(system) is TinySystem and system.p.r == 0.3 and system.name == "tiny_ep"
+    from daof.train.config import compose_config
+
+    assert compose_config(["filter=slf", "system=tiny_ep"]).system == "tiny_ep"
 
 
 def test_the_training_cli_takes_an_import_path():
@@ -214,6 +217,8 @@ def test_the_training_cli_takes_an_import_path():
         compose_config(["filter=slf", f"system={__name__}:Nope"])
     with pytest.raises(ValueError, match="unknown parameter"):
         compose_config(["filter=slf", f"system={PATH}", "overrides.nope=1"])
+    with pytest.raises(ValueError, match="unknown system 'foo'; valid: linear, veh14dof, veh2dof or an import path"):
+        compose_config(["filter=slf", "system=foo"])
 
 
 def test_an_experiment_file_that_is_not_there_is_one_line(tmp_path):

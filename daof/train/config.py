@@ -264,11 +264,12 @@ def register_configs() -> None:
 def _system_of_user_code(overrides: list[str]) -> tuple[list[str], str | None]:
     """``system=pkg.module:Class`` (or a ``daof.systems`` entry point): the overrides with the system group's
     empty ``USER_SYSTEM`` choice instead, and the system's name (None for a system of ``daof/conf/system``)."""
-    files = {p.stem for p in (CONF_DIR / "system").glob("*.yaml")}
+    from daof.envs.registry import is_import_path, system_entry_point
+
     chosen = [o for o in overrides if o.split("=", 1)[0] == "system"]
     name = chosen[-1].split("=", 1)[1] if chosen else None
-    if name is None or name in files:
-        return overrides, None
+    if name is None or not (is_import_path(name) or system_entry_point(name) is not None):
+        return overrides, None  # a file of daof/conf/system, or an unknown name that Hydra refuses
     return [f"system={USER_SYSTEM}" if o in chosen else o for o in overrides], name
 
 
@@ -279,7 +280,8 @@ def _group_error(error: Exception) -> str | None:
         if f"Could not find '{group}/" in text:
             choice = text.split(f"'{group}/", 1)[1].split("'", 1)[0]
             valid = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
-            return f"unknown {group} {choice!r}; valid: {', '.join(valid)}"
+            more = " or an import path 'package.module:Class'" if group == "system" else ""
+            return f"unknown {group} {choice!r}; valid: {', '.join(valid)}{more}"
     return None
 
 
