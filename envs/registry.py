@@ -153,6 +153,9 @@ def import_root(name: str) -> Path | None:
         return None
     system_class(name)  # imports the module (or says in one line why not)
     module_name = name.partition(":")[0]
+    if module_name == "__main__":
+        raise ValueError(f"system {name!r} is defined in the script being run: a fresh process cannot import it; "
+                         "move the class into a module")  # fmt: skip
     file = getattr(sys.modules[module_name], "__file__", None)
     if file is None:
         return None

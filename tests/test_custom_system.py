@@ -12,6 +12,7 @@ import json
 import math
 import os
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,12 +139,15 @@ def test_a_system_of_the_test_module_trains_and_reports_end_to_end_by_import_pat
     assert load_filter(out / "slf-N20-s1" / "best.pt", make_system(PATH)).config.system == PATH
 
 
-def test_training_jobs_put_the_system_folder_on_pythonpath(tmp_path):
+def test_training_jobs_put_the_system_folder_on_pythonpath(tmp_path, monkeypatch):
     from daof.experiments.jobs import TrainingJob
 
     here = str(Path(__file__).resolve().parent)
     assert import_root(PATH) == Path(here)
     assert import_root("linear") is None
+    monkeypatch.setattr(sys.modules["__main__"], "_TinyInMain", TinySystem, raising=False)
+    with pytest.raises(ValueError, match="is defined in the script being run"):
+        import_root("__main__:_TinyInMain")
     job = TrainingJob("SLF", tmp_path, 10, pythonpath=[here])
     assert job.environment({"PYTHONPATH": "/elsewhere"})["PYTHONPATH"] == f"{here}{os.pathsep}/elsewhere"
     assert job.environment({})["PYTHONPATH"] == here
