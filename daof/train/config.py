@@ -268,7 +268,9 @@ def _system_of_user_code(overrides: list[str]) -> tuple[list[str], str | None]:
 
     chosen = [o for o in overrides if o.split("=", 1)[0] == "system"]
     name = chosen[-1].split("=", 1)[1] if chosen else None
-    if name is None or not (is_import_path(name) or system_entry_point(name) is not None):
+    if name is None or (CONF_DIR / "system" / f"{name}.yaml").is_file():
+        return overrides, None
+    if not (is_import_path(name) or system_entry_point(name) is not None):
         return overrides, None  # a file of daof/conf/system, or an unknown name that Hydra refuses
     return [f"system={USER_SYSTEM}" if o in chosen else o for o in overrides], name
 
