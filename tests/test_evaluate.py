@@ -415,7 +415,8 @@ def test_what_the_command_line_cannot_break_is_checked_too():
 
 
 def test_the_entry_wants_one_experiment():
-    with pytest.raises(SystemExit, match="^give one experiment=NAME; valid: linear, veh14dof, veh2dof$"):
+    valid = "linear, veh14dof, veh2dof or a path to a YAML file"
+    with pytest.raises(SystemExit, match=f"^give one experiment=NAME; valid: {valid}$"):
         main([])
     with pytest.raises(SystemExit, match="^recipes/veh2dof/experiment.py runs experiment=veh2dof; leave out"):
         experiment1("experiment=linear")

@@ -1,4 +1,4 @@
-"""``python -m daof.experiments experiment=veh2dof|linear|veh14dof [profile=tiny|quick|paper] [key=value ...]``."""
+"""``python -m daof.experiments experiment=veh2dof|linear|veh14dof|path/to/own.yaml [profile=...] [key=value ...]``."""
 
 from daof.experiments.experiment import main
 

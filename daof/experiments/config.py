@@ -44,6 +44,7 @@ __all__ = [
     "Tolerance",
     "check_experiment",
     "compose_experiment",
+    "experiment_file",
     "experiment_names",
     "for_scenario",
     "note_fields",
@@ -119,7 +120,7 @@ class DropoutStudy:
 
 @dataclass
 class ExperimentConfig:
-    system: str = MISSING  # a registered system name (daof.envs.make_system)
+    system: str = MISSING  # a registered name, an import path pkg.mod:Cls or an entry point (daof.envs.make_system)
     title: str = MISSING  # the report's title; {scenario} is replaced by the scenario
     root: str = MISSING  # results root of one profile
     profile: str = "quick"
@@ -142,6 +143,7 @@ class ExperimentConfig:
     training_overrides: list[str] = field(default_factory=list)  # overrides of every training
     sweep_override: str | None = None  # one training override applied after all others (daof.experiments.sweep)
     window_study: str | None = None  # a learned row trained again at every N of the profile's windows
+    classical_only: bool = False  # leave out the learned rows: study and report the classical filters (a first check)
     classical: dict[str, ClassicalFilter] = field(default_factory=dict)  # study row -> model-based filter
     reference: list[str] = field(default_factory=list)  # the study's reference: the first of these that runs
     convergence_check: ConvergenceCheck | None = None
@@ -185,6 +187,26 @@ def experiment_names() -> list[str]:
     return sorted(p.stem for p in EXPERIMENT_DIR.glob("*.yaml"))
 
 
+def experiment_file(name: str) -> tuple[Path, str]:
+    """(config folder, config name) of experiment ``name``: one of daof's, or a path to a YAML file of the user's.
+
+    A name ending in ``.yaml`` or holding a ``/`` is a path (relative to the working directory), so
+    an experiment kept in the user's own project runs as ``experiment=path/to/experiment.yaml``.
+    """
+    if not (name.endswith(".yaml") or "/" in name):
+        if name not in experiment_names():
+            raise ValueError(
+                f"unknown experiment {name!r}; valid: {', '.join(experiment_names())} or a path to a YAML file"
+            )
+        return EXPERIMENT_DIR, name
+    path = Path(name).expanduser().resolve()
+    if not path.is_file():
+        raise ValueError(f"no experiment file {name!r} (looked for {path})")
+    if path.suffix != ".yaml":
+        raise ValueError(f"experiment file {name!r} is not a .yaml file")
+    return path.parent, path.stem
+
+
 def register_configs() -> None:
     """Register the schema (``defaults: [experiment_schema, _self_]`` in ``daof/conf/experiment/*.yaml``)."""
     ConfigStore.instance().store(name="experiment_schema", node=ExperimentConfig)
@@ -196,18 +218,26 @@ def compose_experiment(name: str, overrides: list[str] = ()) -> DictConfig:
     """Experiment ``name``'s config with command-line style ``overrides``, unresolved (``for_scenario``
     resolves it per scenario); an unknown experiment, key or choice, or a wrong type, is one ``ValueError`` line."""
     overrides = list(overrides)
-    if name not in experiment_names():
-        raise ValueError(f"unknown experiment {name!r}; valid: {', '.join(experiment_names())}")
+    config_dir, config_name = experiment_file(name)
     check_override_keys(ExperimentConfig, overrides, "experiment", "docs/experiments.md lists every key")
     register_configs()
     try:
-        with initialize_config_dir(config_dir=str(EXPERIMENT_DIR), version_base="1.3"):
-            cfg = compose(config_name=name, overrides=overrides)
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            cfg = compose(config_name=config_name, overrides=overrides)
     except (HydraException, OmegaConfBaseException) as error:
         raise ValueError(one_line(error)) from None
     missing = sorted(OmegaConf.missing_keys(cfg))
     if missing:
         raise ValueError(f"experiment {name}: key(s) {missing} have no value")
+    if cfg.classical_only:  # no learned row, no budget, no window study; what names a learned row goes too
+        learned = set(cfg.learned)
+        cfg.learned, cfg.window_study = {}, None
+        cfg.reference = [r for r in cfg.reference if r not in learned]
+        cfg.requirements = {k: v for k, v in cfg.requirements.items() if k not in learned}
+        if cfg.report.paired_with in learned:
+            cfg.report.paired_with = None
+        for profile in cfg.profiles.values():
+            profile.frames, profile.overrides, profile.windows = {}, {}, []
     return cfg
 
 

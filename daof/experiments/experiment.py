@@ -124,13 +124,17 @@ def training_jobs(cfg: ExperimentConfig, p: Profile, label: str = "") -> tuple[d
         if name == cfg.window_study:
             others = sorted(p.windows, reverse=True)
             rows += [(f"{name} (N={n})", name, n, seeds[0]) for n in others if n != cfg.window]
+    from daof.envs.registry import import_root
+
+    root_of_system = import_root(cfg.system)  # a system of the user's code: where the trainings import it from
+    pythonpath = [str(root_of_system)] if root_of_system is not None else []
     jobs, windows = {}, {}
     for name, row_name, n, seed in rows:
         row = cfg.learned[row_name]
         overrides = [f"filter={row.filter}", *common, f"seed={seed}", f"window={n}", *extra, *row.overrides]
         overrides += [*p.overrides.get(row_name, []), *([cfg.sweep_override] if cfg.sweep_override else [])]
         out = root / f"{row.dir or row.filter.replace('_', '-')}-N{n}-s{seed}"
-        jobs[name] = TrainingJob(name + label, out, int(p.frames[row_name]), overrides)
+        jobs[name] = TrainingJob(name + label, out, int(p.frames[row_name]), overrides, pythonpath=pythonpath)
         windows[name] = n
     return jobs, windows
 
@@ -470,7 +474,8 @@ def main(argv: list[str] | None = None, *, experiment: str | None = None, progra
         if len(chosen) != 1:
             from daof.experiments.config import experiment_names
 
-            raise SystemExit(f"give one experiment=NAME; valid: {', '.join(experiment_names())}")
+            valid = ", ".join(experiment_names())
+            raise SystemExit(f"give one experiment=NAME; valid: {valid} or a path to a YAML file")
         experiment = chosen[0]
     try:
         plan = plan_experiment(experiment, overrides, program)

@@ -46,6 +46,8 @@ class TrainingJob:
     overrides: list[str] = field(default_factory=list)
     #: the command that trains, before the overrides (another interpreter, or a stand-in in tests)
     launcher: list[str] = field(default_factory=lambda: [sys.executable, "-m", "daof.train"])
+    #: folders the training must import from (a system of the user's code), put first on its PYTHONPATH
+    pythonpath: list[str] = field(default_factory=list)
 
     @property
     def summary_path(self) -> Path:
@@ -115,6 +117,11 @@ class TrainingJob:
 
     def summary(self) -> dict:
         return json.loads(self.summary_path.read_text())
+
+    def environment(self, base: dict[str, str]) -> dict[str, str]:
+        """``base`` (the process environment) with ``pythonpath`` first on ``PYTHONPATH``, output unbuffered."""
+        paths = [*self.pythonpath, *([base["PYTHONPATH"]] if base.get("PYTHONPATH") else [])]
+        return {**base, "PYTHONUNBUFFERED": "1", **({"PYTHONPATH": os.pathsep.join(paths)} if paths else {})}
 
 
 def _count(n: float) -> str:
@@ -194,7 +201,6 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
     running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
     failed = []
     status = _Status(log, status_every)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     main_thread = threading.current_thread() is threading.main_thread()  # signal handlers live there only
     previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM")) if main_thread else None
     try:
@@ -206,6 +212,7 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
                 fh = log_path.open("ab")
                 resumed = " (resuming)" if any("resume=" in c for c in job.command()) else ""
                 log(f"  {job.name}: training{resumed}, log {log_path}")
+                env = job.environment(dict(os.environ))
                 proc = subprocess.Popen(job.command(), stdout=fh, stderr=subprocess.STDOUT, env=env)
                 running.append((job, proc, log_path, fh))
             time.sleep(2.0)

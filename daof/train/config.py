@@ -34,6 +34,8 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 #: config groups of ``train.yaml``: what ``filter=...`` and ``system=...`` choose
 GROUPS = ("filter", "system", "tuning")
 
+#: the system group's choice that stands for a system given by import path or entry point (``system=pkg.mod:Cls``)
+USER_SYSTEM = "user_code"
 #: filter kind -> the trainer that learns it
 FILTER_KINDS = {"DAOF-v1": "dsac", "DAOF-v2": "dsac", "SLF": "supervised", "KalmanNet": "kalmannet"}
 
@@ -146,7 +148,7 @@ class Logger:
 class TrainConfig:
     kind: str = MISSING  # DAOF-v1 | DAOF-v2 | SLF | KalmanNet (set by the filter group: filter=daof_v1|...)
     run_name: str = MISSING  # the run directory's stem (set by the filter group)
-    system: str = MISSING  # a registered system name (set by the system group)
+    system: str = MISSING  # a system of daof/conf/system, an import path pkg.mod:Cls or an entry point
     scenario: str = FilterConfig.scenario
     overrides: dict[str, Any] = field(default_factory=dict)  # system parameters; replay: a recorded episode bank
     window: int = FilterConfig.window  # N of h_t^N
@@ -255,6 +257,22 @@ def check_config(cfg: DictConfig) -> None:
 def register_configs() -> None:
     """Register the schema with Hydra's ConfigStore (``defaults: [train_schema, ...]`` in ``daof/conf``)."""
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    # the system group's choice for a system of the user's code: no file of its own, the filter's budget
+    ConfigStore.instance().store(group="system", name=USER_SYSTEM, node={}, package="_global_")
+
+
+def _system_of_user_code(overrides: list[str]) -> tuple[list[str], str | None]:
+    """``system=pkg.module:Class`` (or a ``daof.systems`` entry point): the overrides with the system group's
+    empty ``USER_SYSTEM`` choice instead, and the system's name (None for a system of ``daof/conf/system``)."""
+    from daof.envs.registry import is_import_path, system_entry_point
+
+    chosen = [o for o in overrides if o.split("=", 1)[0] == "system"]
+    name = chosen[-1].split("=", 1)[1] if chosen else None
+    if name is None or (CONF_DIR / "system" / f"{name}.yaml").is_file():
+        return overrides, None
+    if not (is_import_path(name) or system_entry_point(name) is not None):
+        return overrides, None  # a file of daof/conf/system, or an unknown name that Hydra refuses
+    return [f"system={USER_SYSTEM}" if o in chosen else o for o in overrides], name
 
 
 def _group_error(error: Exception) -> str | None:
@@ -264,7 +282,8 @@ def _group_error(error: Exception) -> str | None:
         if f"Could not find '{group}/" in text:
             choice = text.split(f"'{group}/", 1)[1].split("'", 1)[0]
             valid = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
-            return f"unknown {group} {choice!r}; valid: {', '.join(valid)}"
+            more = " or an import path 'package.module:Class'" if group == "system" else ""
+            return f"unknown {group} {choice!r}; valid: {', '.join(valid)}{more}"
     return None
 
 
@@ -278,10 +297,13 @@ def compose_config(overrides: list[str] = ()) -> DictConfig:
     check_override_keys(TrainConfig, overrides, "config", "python -m daof.train --cfg lists every key", GROUPS)
     # system parameters are free-form: ``overrides.mu=0.8`` adds or replaces one
     overrides = ["++" + o.lstrip("+") if o.lstrip("+~").startswith("overrides.") else o for o in overrides]
+    overrides, system = _system_of_user_code(overrides)
     register_configs()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name="train", overrides=overrides)
+        if system is not None:
+            cfg.system = system
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as error:
         raise ValueError(_group_error(error) or one_line(error)) from None

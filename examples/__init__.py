@@ -1,0 +1,1 @@
+"""Worked examples of systems defined outside daof, as a user writes them (docs/custom_system.md)."""

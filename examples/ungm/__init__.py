@@ -1,0 +1,1 @@
+"""The univariate nonstationary growth model (``examples.ungm.system:UNGM``)."""
