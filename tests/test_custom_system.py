@@ -50,9 +50,6 @@ class TinySystem(StochasticSystem):
         self.prior = GaussianNoise.diagonal([0.0], [1.0])
         self.process_noise = GaussianNoise.diagonal([0.0], [math.sqrt(p.q)])
         self.measurement_noise = GaussianNoise.diagonal([0.0], [math.sqrt(p.r)])
-        # provisional: removed once scales are data-derived
-        self.state_low, self.state_high = torch.tensor([-6.0]), torch.tensor([6.0])
-        self.error_scale = torch.tensor([0.3])
 
     def f(self, x, u):
         return self.p.a * x + 0.5 * torch.sin(x) + u

@@ -60,11 +60,6 @@ class UNGM(StochasticSystem):
         self.prior = GaussianNoise.diagonal([0.0], [math.sqrt(p.prior_var)])
         self.process_noise = GaussianNoise.diagonal([0.0], [math.sqrt(p.q)])
         self.measurement_noise = GaussianNoise.diagonal([0.0], [math.sqrt(p.r)])
-        # provisional: removed once scales are data-derived
-        self.state_low = torch.tensor([-40.0])
-        self.state_high = torch.tensor([40.0])
-        self.error_scale = torch.tensor([5.0])
-        # end of the provisional block
 
     def f(self, x, u):
         p = self.p
