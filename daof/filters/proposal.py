@@ -62,9 +62,9 @@ class ProposalParticleFilter(ParticleFilter):
         self._q_mean = s.process_noise.mean.float()
         self._r = s.measurement_noise.covariance.double()
         self._r_mean = s.measurement_noise.mean.double()
-        self._prior_proposals = 0
+        self._counts = {"prior_proposals": 0}  # a dict: no setting of the filter (runner.classical_fingerprint)
         out = super()._run(y, u_prev, u)
-        self.stats["prior_proposals"] = self._prior_proposals
+        self.stats.update(self._counts)
         return out
 
     def _update(self, mean, chol, measure, y, present):
@@ -115,7 +115,7 @@ class ProposalParticleFilter(ParticleFilter):
         if failed.any():  # the prior proposal where the update's covariance lost definiteness
             chol_p = torch.where(failed[..., None, None], self._q_chol, chol_p)
             q_mean = torch.where(failed[..., None], mean.double(), q_mean)
-            self._prior_proposals += int(failed.sum())
+            self._counts["prior_proposals"] += int(failed.sum())
         x_new, log_q = self._draw(q_mean, chol_p, (runs, particles), generator, x.dtype)
         log_transition = s.process_noise.log_prob(x_new - mean + self._q_mean)
         log_p = self._log_likelihood(y - s.g(x_new, u), present)
@@ -153,7 +153,7 @@ class ProposalParticleFilter(ParticleFilter):
         log_p = self._log_likelihood(y - s.g(x1, u), present)
         increment = (log_prior.double() + log_transition.double() + log_p.double() - log_q).to(x.dtype)
         if failed.any():
-            self._prior_proposals += int(failed.sum()) * particles
+            self._counts["prior_proposals"] += int(failed.sum()) * particles
             x_prior = s.f(x, u_prev) + s.process_noise.sample((runs, particles), generator)
             x1 = torch.where(failed[:, None, None], x_prior, x1)
             increment = torch.where(failed[:, None], self._log_likelihood(y - s.g(x_prior, u), present), increment)
