@@ -87,11 +87,13 @@ class ProposalParticleFilter(ParticleFilter):
             innovation = torch.where(present, innovation, 0.0)
             C = C * mask[..., None, :]
             S = S * (mask[..., :, None] * mask[..., None, :]) + torch.diag_embed(1.0 - mask)
-        gain_t = torch.cholesky_solve(C.transpose(-1, -2), torch.linalg.cholesky(S))  # Kᵀ = S⁻¹ Cᵀ
+        chol_s, info_s = torch.linalg.cholesky_ex(S)
+        gain_t = torch.cholesky_solve(C.transpose(-1, -2), chol_s)  # Kᵀ = S⁻¹ Cᵀ
         updated = mean + (innovation[..., None, :] @ gain_t).squeeze(-2)
         P = chol @ chol.transpose(-1, -2) - C @ gain_t
         chol_p, info = torch.linalg.cholesky_ex(0.5 * (P + P.transpose(-1, -2)))
-        return updated, chol_p, info != 0
+        finite = torch.isfinite(updated).all(-1) & torch.isfinite(chol_p).flatten(-2).all(-1)
+        return updated, chol_p, (info != 0) | (info_s != 0) | ~finite
 
     @staticmethod
     def _draw(mean, chol, shape, generator, dtype):
