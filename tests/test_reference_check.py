@@ -196,3 +196,18 @@ def test_an_exact_reference_is_taken_without_a_check(tmp_path, lin):
     assert (choice.name, choice.how) == ("KF", "exact") and [c.name for c in choice.candidates] == ["KF"]
     assert not list(tmp_path.iterdir())  # no doubled run
     assert "exact" in choice.lines()[0]
+
+
+def test_a_best_filter_reference_stays_a_practical_winner(tmp_path):
+    """When no candidate converged, the reference is a practical filter (the best): the scenario report still
+    ranks it among the practical filters and leaves out only the candidates the check tried."""
+    from daof.evaluate.report import scenario_winners
+    from daof.experiments.reference import choose_reference
+    from daof.filters import UKF, ParticleFilter
+
+    system = BearingTracking()
+    filters = {"UKF": UKF(system), "PF": ParticleFilter(system, 300, seed=1)}
+    study = _study(system, filters, 4, 20)
+    choose_reference(study, ["PF"], filters, set(), limit_percent=1.0, seed=3, cache_dir=tmp_path)
+    assert study.reference == "UKF"
+    assert scenario_winners(study)["overall_without_oracle"] == "UKF"  # PF, the failed candidate, left out
