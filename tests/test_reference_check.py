@@ -115,6 +115,16 @@ def test_the_proposal_pf_refuses_a_noise_without_a_density(lin):
     with pytest.raises(ValueError, match="process noise of linear \\(SampleOnly\\) has no density"):
         ProposalParticleFilter(system, 10)
 
+    class Flat(SampleOnly):  # a density, but no spread on one axis: no Gaussian proposal
+        covariance = torch.diag(torch.tensor([1.0, 0.0]))
+
+        def log_prob(self, value):
+            return value.new_zeros(value.shape[:-1])
+
+    system.process_noise = Flat()
+    with pytest.raises(ValueError, match="process noise covariance of linear is not positive definite"):
+        ProposalParticleFilter(system, 10)
+
 
 def test_the_proposal_pf_weights_only_the_present_channels():
     """A NaN channel takes no part: a step with both bearings missing leaves the estimates finite and moves

@@ -156,7 +156,7 @@ def classical_filters(cfg: ExperimentConfig, p: Profile, system, fallback: bool 
 
     out = {}
     for name, spec in cfg.classical.items():
-        if spec.scenarios is not None and cfg.scenario not in spec.scenarios or spec.fallback != fallback:
+        if (spec.scenarios is not None and cfg.scenario not in spec.scenarios) or spec.fallback != fallback:
             continue
         cls = getattr(filters, spec.filter)
         try:

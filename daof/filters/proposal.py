@@ -43,8 +43,17 @@ class ProposalParticleFilter(ParticleFilter):
 
     name = "PF-proposal"
 
-    def __init__(self, system: StochasticSystem, num_particles: int = 1000, seed: int = 0, **kwargs):
-        super().__init__(system, num_particles, seed, **kwargs)
+    def __init__(
+        self, system: StochasticSystem, num_particles: int = 1000, seed: int = 0, max_elements: int = 2**19, **kwargs
+    ):
+        # a chunk holds 2n cubature points per particle: a quarter of the bootstrap's run-particles per chunk
+        super().__init__(system, num_particles, seed, max_elements=max_elements, **kwargs)
+        _, info = torch.linalg.cholesky_ex(system.process_noise.covariance.double())
+        if info != 0:
+            raise ValueError(
+                f"{self.name}: the process noise covariance of {system.name} is not positive definite; "
+                "the proposal needs one"
+            )
         for what, noise, dim in (
             ("process", system.process_noise, system.state_dim),
             ("measurement", system.measurement_noise, system.measurement_dim),
