@@ -115,17 +115,28 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
         assert (report / name).is_file(), name
     results = json.loads((report / "results.json").read_text())
     expected = {"EKF", "UKF", "PF", "PF-oracle", "SLF", "DAOF-v1", "DAOF-v2", "KalmanNet", "DAOF-v1 (N=1)"}
+    # the reference is checked: PF-oracle, and only if it fails its check the fallback PF-proposal
+    check = results["reference_check"]
+    tried = [c["name"] for c in check["candidates"]]
+    assert tried[0] == "PF-oracle" and tried == ["PF-oracle", "PF-proposal"][: len(tried)]
+    assert all(c["converged"] == all(v < 1.0 for v in c["change_percent"]) for c in check["candidates"])
+    expected |= {"PF-proposal"} if "PF-proposal" in tried else set()
     assert set(results["filters"]) == expected
+    converged = [c["name"] for c in check["candidates"] if c["converged"]]
+    if converged:  # the first converged candidate, the last one tried
+        assert results["reference"] == converged[0] == tried[-1] and check["how"] == "converged"
+    else:  # never an unconverged candidate: the best filter
+        assert check["how"] == "best" and results["reference"] == check["name"] not in tried
     for name, row in results["filters"].items():
         assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
         assert len(row["per_run_rmse"]) == results["runs"] == 3
         assert row["cost_ms"] > 0 and row["throughput_per_s"] > 0
-    assert results["filters"]["PF-oracle"]["ratio_to_oracle"] == [1.0, 1.0]
+    assert results["filters"][results["reference"]]["ratio_to_oracle"] == [1.0, 1.0]
     assert [r["window"] for r in results["window_study"]] == [1, 20]
     text = (report / "report.md").read_text()
     assert "| DAOF-v1 |" in text and "## Sliding-window study (DAOF-v1)" in text
     assert "## The paper's Table I, for context" in text and "Table II" not in text
-    assert "- PF-oracle uses 400 particles; with 800 its RMSE changes by" in text  # the convergence check
+    assert "- PF-oracle (400 particles), convergence check: with 800 particles (seed 3) its RMSE changes by" in text
     assert "- PF uses 200 particles." in text
     paired = results["paired_with"]
     assert paired["reference"] == "UKF" and set(paired["filters"]) == expected - {"UKF"}
@@ -144,7 +155,8 @@ def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
     experiment1(*args, *gaps)
     out = capsys.readouterr().out
     assert out.count("finished earlier, reusing") == 5
-    assert out.count("reused finished result") == 10  # 9 filters and the doubled PF-oracle
+    # 9 filters, and every candidate the reference check tried, with its doubled run (a fallback is a row too)
+    assert out.count("reused finished result") == 9 + 2 * len(tried) - 1
     gappy = json.loads((report / "dropout" / "results.json").read_text())
     assert set(gappy["filters"]) == expected and gappy["dropout"]["p"] == 0.1
     assert all(0.05 < m < 0.5 for m in gappy["dropout"]["missing_fraction"])
@@ -371,10 +383,14 @@ def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path, monkeypatch):
         ("veh2dof", ["profile=tiny", "~profiles.tiny.particles.PF"], "profiles.tiny.particles has no particle count"),
         ("veh2dof", ["classical.EKF.filter=EnKF"], "classical.EKF.filter='EnKF' is not valid"),
         ("veh2dof", ["classical.PF-joint.scenarios=[icy]"], "classical.PF-joint.scenarios \\['icy'\\] is not"),
-        ("veh2dof", ["reference=[KF]"], "reference \\['KF'\\] is not filters of the study"),
+        ("veh2dof", ["reference=[KF]"], "reference \\['KF'\\] is not an exact or particle filter of classical"),
+        ("veh2dof", ["reference=[UKF]"], "reference \\['UKF'\\] is not an exact or particle filter of classical"),
+        ("veh2dof", ["classical.UKF.exact=true"], "classical.UKF.exact: only \\['KalmanFilter'\\] can be exact"),
+        ("veh2dof", ["classical.PF.fallback=true"], "classical.PF.fallback: only a reference candidate runs as"),
+        ("veh2dof", ["convergence_check.limit_percent=0"], "convergence_check.limit_percent must be > 0, got 0.0"),
         ("veh2dof", ["report.paired_with=KF"], "report.paired_with \\['KF'\\] is not a filter of the study"),
         ("veh2dof", ["report.paper_table=III"], "report.paper_table \\['III'\\] is not a paper table"),
-        ("veh2dof", ["convergence_check.filter=UKF"], "convergence_check.filter \\['UKF'\\] is not a particle"),
+        ("veh2dof", ["convergence_check.filter=UKF"], "convergence_check.filter"),
         ("veh2dof", ["dropout.p=1.5"], "dropout.p must be in \\[0, 1\\], got 1.5"),
         ("veh2dof", ["profile=tiny", "dropout.enabled=true"], "dropout: blackout \\[4.0, 5.0\\) s does not fit in 60"),
         ("veh2dof", ["dropout.enabled=true", "dropout.blackout=[wheel,1,1]"], "dropout: blackout channel 'wheel'"),

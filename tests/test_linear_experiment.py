@@ -31,6 +31,14 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     results = json.loads((report / "results.json").read_text())
     assert results["system"] == "linear" and results["runs"] == 3 and results["steps"] == 60
     assert results["reference"] == "KF"
+    # exact by the config (the KF of a linear-Gaussian system), so nothing is doubled, and the report says so
+    assert results["reference_check"]["how"] == "exact" and [
+        c["name"] for c in results["reference_check"]["candidates"]
+    ] == ["KF"]
+    assert (
+        "- Reference: KF, exact (the Kalman filter of a linear-Gaussian system is the posterior mean)"
+        in (report / "report.md").read_text()
+    )
     rows = results["filters"]
     assert list(rows) == ["KF", "KF-stationary", "PF", "DAOF-v1", "DAOF-v2", "KalmanNet"]
     for name, row in rows.items():

@@ -627,8 +627,9 @@ def _paper_lines(paper: PaperTable | None) -> list[str]:
 
 def scenario_winners(study) -> dict:
     """Which filter wins one study: the lowest RMSE per state, and overall the lowest mean over states
-    of RMSE / best RMSE (unit-free), with and without the reference filters (the PF-oracle and the study's
-    reference, e.g. PF-joint on mismatch: too costly to be practical filters).
+    of RMSE / best RMSE (unit-free), with and without the reference filters (the PF-oracle, the study's
+    reference, e.g. PF-joint on mismatch, and every candidate its check tried: too costly to be practical
+    filters; a best filter taken as the reference because none converged stays practical).
 
     A filter with a non-finite RMSE on any state (it failed) wins nothing.
     """
@@ -642,7 +643,12 @@ def scenario_winners(study) -> dict:
         return names[min(finite, key=lambda i: values[i])] if finite else None
 
     every = list(range(len(names)))
-    references = {ORACLE, getattr(study, "reference", None)}
+    # the reference candidates the study tried; the reference itself unless it is the best filter (no candidate
+    # converged), which is a practical filter
+    check = getattr(study, "reference_check", None) or {}
+    references = {ORACLE, *(c["name"] for c in check.get("candidates", []))}
+    if check.get("how") != "best":
+        references.add(getattr(study, "reference", None))
     practical = [i for i in every if names[i] not in references]
     return {
         "per_state": {st: best(rmse[:, j].tolist(), every) for j, st in enumerate(study.system.state_names)},

@@ -68,10 +68,19 @@ class Study:
     #: the filter every ``ratio_to_oracle`` is relative to (PF-oracle, or the KF on the linear system);
     #: None when the study has no such filter
     reference: str | None = None
+    #: how the reference was chosen and checked (``daof.experiments.reference.ReferenceChoice.to_json``)
+    reference_check: dict | None = None
+
+    def set_reference(self, name: str | None) -> None:
+        """Make ``name`` the reference: every filter's ratios and diverged runs are taken relative to it again."""
+        _add_oracle_metrics(self.results, name, self.estimates, self.system)
+        self.reference = name if name in self.results else None
 
     def to_json(self) -> dict:
         s = self.system
         extra = {"dropout": self.dropout} if self.dropout is not None else {}
+        if self.reference_check is not None:
+            extra["reference_check"] = self.reference_check
         return {
             "system": s.name,
             "scenario": s.scenario,
@@ -225,5 +234,6 @@ def _add_oracle_metrics(
             implausible = system.diverged_runs(estimates[name])
         mask = diverged_runs(run_rmse, oracle_runs, DIVERGENCE_FACTOR, implausible)
         r.diverged, r.diverged_runs = int(mask.sum()), mask.nonzero().flatten().tolist()
+        r.ratio_to_oracle = None
         if oracle_rmse is not None:
             r.ratio_to_oracle = (torch.tensor(r.rmse, dtype=torch.float64) / oracle_rmse).tolist()

@@ -38,6 +38,7 @@ __all__ = [
     "ClassicalFilter",
     "ConvergenceCheck",
     "DropoutStudy",
+    "EXACT_FILTERS",
     "ExperimentConfig",
     "LearnedRow",
     "Profile",
@@ -53,8 +54,18 @@ __all__ = [
 #: the experiments: one YAML file each
 EXPERIMENT_DIR = TRAIN_CONF_DIR / "experiment"
 #: the classes of daof.filters an experiment may name as classical filters (particle filters need a count)
-CLASSICAL_FILTERS = ("EKF", "UKF", "KalmanFilter", "StationaryKalmanFilter", "ParticleFilter", "JointParameterPF")
-PARTICLE_FILTERS = ("ParticleFilter", "JointParameterPF")
+CLASSICAL_FILTERS = (
+    "EKF",
+    "UKF",
+    "KalmanFilter",
+    "StationaryKalmanFilter",
+    "ParticleFilter",
+    "JointParameterPF",
+    "ProposalParticleFilter",
+)
+PARTICLE_FILTERS = ("ParticleFilter", "JointParameterPF", "ProposalParticleFilter")
+#: the filter that may be marked ``exact``: the posterior mean itself on a linear-Gaussian system
+EXACT_FILTERS = ("KalmanFilter",)
 #: what ``logger=`` may name ("" logs nothing beyond the trainings' CSV files)
 LOGGERS = ("", "wandb")
 
@@ -72,9 +83,11 @@ class LearnedRow:
 class ClassicalFilter:
     """One model-based filter of the study, a class of ``daof.filters`` built on the scenario's system."""
 
-    filter: str = MISSING  # EKF | UKF | KalmanFilter | StationaryKalmanFilter | ParticleFilter | JointParameterPF
+    filter: str = MISSING  # one of CLASSICAL_FILTERS
     seed: int = 0  # particle filters: their generator's seed (the count is the profile's particles[<name>])
     scenarios: list[str] | None = None  # run on these scenarios only (null: on every one)
+    exact: bool = False  # the posterior mean itself (a KalmanFilter on a linear-Gaussian system): a reference unchecked
+    fallback: bool = False  # a reference candidate run only when those before it fail their convergence check
 
 
 @dataclass
@@ -100,12 +113,13 @@ class Tolerance:
 
 @dataclass
 class ConvergenceCheck:
-    """Is a particle filter converged? Run again with twice its particles; its RMSE should barely move."""
+    """Is a particle-filter reference converged? Run again with twice its particles; its RMSE should barely move.
 
-    filter: str = MISSING  # a particle filter of `classical`
+    Every particle filter that becomes the study's reference is checked (``daof.experiments.reference``).
+    """
+
     seed: int = 3  # the doubled filter's seed
-    limit_percent: float = 1.0  # what the protocol asks: the RMSE changes by less than this per state
-    scenarios: list[str] | None = None  # run on these scenarios only (null: on every one)
+    limit_percent: float = 1.0  # converged: the RMSE changes by less than this on every state
 
 
 @dataclass
@@ -145,8 +159,9 @@ class ExperimentConfig:
     window_study: str | None = None  # a learned row trained again at every N of the profile's windows
     classical_only: bool = False  # leave out the learned rows: study and report the classical filters (a first check)
     classical: dict[str, ClassicalFilter] = field(default_factory=dict)  # study row -> model-based filter
-    reference: list[str] = field(default_factory=list)  # the study's reference: the first of these that runs
-    convergence_check: ConvergenceCheck | None = None
+    # the study's reference candidates, in order: the first that runs and is exact or converged (else the best filter)
+    reference: list[str] = field(default_factory=list)
+    convergence_check: ConvergenceCheck = field(default_factory=ConvergenceCheck)
     requirements: dict[str, Tolerance] = field(default_factory=dict)  # filter -> its tolerance to the reference
     report: Layout = field(default_factory=Layout)
     dropout: DropoutStudy = field(default_factory=DropoutStudy)
@@ -264,6 +279,34 @@ def _subset(keys, valid, what: str, of: str) -> None:
         raise ValueError(f"{what} {unknown} {'is' if len(unknown) == 1 else 'are'} not {of}; valid: {list(valid)}")
 
 
+def _check_reference(cfg: ExperimentConfig, systems: dict, particle: list[str]) -> None:
+    """Every reference candidate can be trusted or checked: exact, or a particle filter the check can double."""
+    from daof.envs.noise import GaussianNoise
+
+    checkable = [*particle, *(n for n, c in cfg.classical.items() if c.exact)]
+    _subset(cfg.reference, checkable, "reference", "an exact or particle filter of classical (a reference is checked)")
+    if len(set(cfg.reference)) != len(cfg.reference):
+        raise ValueError(f"reference {list(cfg.reference)} names a filter more than once")
+    for name, spec in cfg.classical.items():
+        if spec.fallback and name not in cfg.reference:
+            raise ValueError(f"classical.{name}.fallback: only a reference candidate runs as a fallback")
+        if spec.fallback and spec.exact:
+            raise ValueError(f"classical.{name}: an exact filter needs no fallback; set exact or fallback, not both")
+        if not spec.exact:
+            continue
+        if spec.filter not in EXACT_FILTERS:
+            raise ValueError(f"classical.{name}.exact: only {list(EXACT_FILTERS)} can be exact, not {spec.filter}")
+        for scenario, system in systems.items():
+            noises = (system.prior, system.process_noise, system.measurement_noise)
+            if not all(type(noise) is GaussianNoise for noise in noises):
+                raise ValueError(
+                    f"classical.{name}.exact: {cfg.system} ({scenario}) has non-Gaussian noise, so the Kalman "
+                    "filter is not its posterior mean"
+                )
+    if not cfg.convergence_check.limit_percent > 0:
+        raise ValueError(f"convergence_check.limit_percent must be > 0, got {cfg.convergence_check.limit_percent}")
+
+
 def check_experiment(cfg: ExperimentConfig) -> Profile:
     """Refuse an impossible experiment before any work, in one line naming the key; returns its profile."""
     from daof.envs import make_system
@@ -338,11 +381,7 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
         raise ValueError("the experiment has no filters: set learned and/or classical")
 
     rows = [*classical, *learned]
-    _subset(cfg.reference, rows, "reference", "filters of the study")
-    check = cfg.convergence_check
-    if check is not None:
-        _subset([check.filter], particle, "convergence_check.filter", "a particle filter of classical")
-        _subset(check.scenarios or [], valid_scenarios, "convergence_check.scenarios", f"scenarios of {cfg.system}")
+    _check_reference(cfg, systems, particle)
     for name, req in cfg.requirements.items():
         _subset([name], rows, "requirements", "filters of the study")
         if not req.tolerance > 0:

@@ -28,12 +28,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
 from omegaconf import OmegaConf
 
 from daof.dashboard import log_report
 from daof.device import resolve_device
-from daof.evaluate import Dropout, run_study
+from daof.evaluate import Dropout
 from daof.evaluate.metrics import pooled_rmse
 from daof.evaluate.report import (
     Layout,
@@ -54,6 +53,7 @@ from daof.experiments.config import (
     for_scenario,
 )
 from daof.experiments.jobs import TrainingJob
+from daof.experiments.reference import ReferenceChoice, choose_reference
 from daof.experiments.runner import (
     command_line,
     learning_curves,
@@ -153,13 +153,14 @@ def study_system(cfg: ExperimentConfig, p: Profile):
     return RecordedSystem(system, cache_dir=cfg.cache_dir) if cfg.cache_dir else system
 
 
-def classical_filters(cfg: ExperimentConfig, p: Profile, system) -> dict:
-    """The classical filters that run on this scenario (name -> filter), in config order."""
+def classical_filters(cfg: ExperimentConfig, p: Profile, system, fallback: bool = False) -> dict:
+    """The classical filters that run on this scenario (name -> filter), in config order: the study's rows,
+    or with ``fallback`` the reference candidates that run only when those before them fail their check."""
     import daof.filters as filters
 
     out = {}
     for name, spec in cfg.classical.items():
-        if spec.scenarios is not None and cfg.scenario not in spec.scenarios:
+        if (spec.scenarios is not None and cfg.scenario not in spec.scenarios) or spec.fallback != fallback:
             continue
         cls = getattr(filters, spec.filter)
         try:
@@ -171,7 +172,7 @@ def classical_filters(cfg: ExperimentConfig, p: Profile, system) -> dict:
 
 
 def reference_of(cfg: ExperimentConfig, names) -> str | None:
-    """The study's reference: the first of ``cfg.reference`` that runs on this scenario."""
+    """The first of ``cfg.reference`` that runs on this scenario, before any check (``choose_scenario_reference``)."""
     return next((r for r in cfg.reference if r in names), None)
 
 
@@ -201,8 +202,9 @@ def plan_experiment(name: str, overrides: list[str], program: str | None = None)
                 raise ValueError(str(error)) from None
         if c.classical:  # each one builds on this scenario's system
             classical_filters(c, p, study_system(c, p))
+            classical_filters(c, p, study_system(c, p), fallback=True)
         scenarios[s] = ScenarioPlan(c, c.profiles[c.profile], jobs, windows)
-        _notes(scenarios[s], {}, check=None)  # every note's fields exist
+        _notes(scenarios[s], {})  # every note's fields exist
     _format(first.combined_notes, _fields(scenarios[first.scenarios[0]], {}))
     program = program or f"-m daof.experiments experiment={name}"
     return Plan(first, scenarios, program, list(overrides))
@@ -247,27 +249,14 @@ def _format(notes, fields: dict) -> list[str]:
         raise ValueError(f"a note names a field that does not exist: {error!r}") from None
 
 
-def _check_note(sp: ScenarioPlan, change: list[float] | None) -> list[str]:
-    check = sp.cfg.convergence_check
-    if check is None:
-        return []
-    n = int(sp.profile.particles[check.filter])
-    if change is None:
-        where = ", ".join(check.scenarios or [])
-        return [f"{check.filter} uses {n} particles; its convergence check (doubling them) runs on {where} only."]
-    return [
-        f"{check.filter} uses {n} particles; with {2 * n} its RMSE changes by "
-        + ", ".join(f"{c:.2f} %" for c in change)
-        + f" per state (the protocol asks for < {check.limit_percent:g} %)."
-    ]
-
-
-def _notes(sp: ScenarioPlan, learned: dict, check: list[float] | None, study=None) -> list[str]:
-    """The report's notes: the convergence check, the config's notes and the scenario's, the ratios after
+def _notes(sp: ScenarioPlan, learned: dict, choice: ReferenceChoice | None = None, study=None) -> list[str]:
+    """The report's notes: the reference and its check, the config's notes and the scenario's, the ratios after
     the start-up of every requirement with a settled step, and the profile's system parameters."""
     cfg, p = sp.cfg, sp.profile
     fields = _fields(sp, learned)
-    out = _check_note(sp, check) + _format([*cfg.notes, *cfg.scenario_notes.get(cfg.scenario, [])], fields)
+    out = (choice.lines() if choice is not None else []) + _format(
+        [*cfg.notes, *cfg.scenario_notes.get(cfg.scenario, [])], fields
+    )
     if study is not None and study.reference is not None:
         for step in dict.fromkeys(r.settled_step for r in cfg.requirements.values() if r.settled_step is not None):
             if study.steps > step:
@@ -318,28 +307,25 @@ def requirements(cfg: ExperimentConfig, study) -> list[Requirement]:
     return out
 
 
-def convergence_check(sp: ScenarioPlan, system, study) -> list[float] | None:
-    """The checked particle filter again with twice its particles: its RMSE change per state, in %
-    (None where the config does not run the check)."""
-    import daof.filters as filters
-
-    cfg, p, check = sp.cfg, sp.profile, sp.cfg.convergence_check
-    if check is None or (check.scenarios is not None and cfg.scenario not in check.scenarios):
-        return None
-    cls = getattr(filters, cfg.classical[check.filter].filter)
-    n = 2 * int(p.particles[check.filter])
-    doubled = run_study(
-        system,
-        {f"{cls.name} (N={n})": cls(system, n, seed=check.seed)},
-        int(p.runs),
-        int(p.steps),
-        int(cfg.seed),
-        measure_cost=False,
+def choose_scenario_reference(sp: ScenarioPlan, study, classical: dict, fallbacks: dict) -> ReferenceChoice:
+    """Check the scenario's reference candidates on the study (``daof.experiments.reference``) and make the
+    chosen one its reference; a fallback that ran joins ``classical`` (so the dropout study has it too)."""
+    cfg = sp.cfg
+    candidates = {**classical, **fallbacks}
+    choice = choose_reference(
+        study,
+        list(cfg.reference),
+        {name: candidates[name] for name in cfg.reference if name in candidates},
+        {name for name in cfg.reference if name in cfg.classical and cfg.classical[name].exact},
+        limit_percent=float(cfg.convergence_check.limit_percent),
+        seed=int(cfg.convergence_check.seed),
         cache_dir=Path(cfg.output_root) / "study",
+        timing_threads=int(cfg.timing_threads),
     )
-    base = torch.tensor(study.results[check.filter].rmse)
-    twice = torch.tensor(next(iter(doubled.results.values())).rmse)
-    return ((twice - base).abs() / base * 100).tolist()
+    classical.update({name: f for name, f in fallbacks.items() if name in study.results})
+    for line in choice.lines():
+        print(line)
+    return choice
 
 
 # ----------------------------------------------------------------------------------------- running
@@ -362,13 +348,14 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         expect=lambda name: {"system": cfg.system, "scenario": scenario, "window": sp.windows[name]},
     )
     study, filters = run_trained_study(system, sp.jobs, **studied)
-    change = convergence_check(sp, system, study)
+    choice = choose_scenario_reference(sp, study, classical, classical_filters(cfg, p, system, fallback=True))
     pinned = (f"profile={cfg.profile}", f"scenario={scenario}")
     if cfg.dropout.enabled:
         d = cfg.dropout
         dropout = Dropout(float(d.p), tuple(d.blackout) if d.blackout else None, int(d.seed))
         print(f"2/3 the same study with sensor dropout ({scenario})")
-        gappy, _ = run_trained_study(system, sp.jobs, **studied, dropout=dropout)
+        gappy, _ = run_trained_study(system, sp.jobs, **{**studied, "reference": choice.name}, dropout=dropout)
+        gappy.reference_check = {**study.reference_check, "on": "the complete data of the main study"}
         spec = ReportSpec(
             layout=Layout(per_state=cfg.report.per_state),
             notes=[DROPOUT_NOTE],
@@ -403,7 +390,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
         ),
         window_study=study_rows,
         requirements=checks,
-        notes=_notes(sp, learned, change, study),
+        notes=_notes(sp, learned, choice, study),
         meta={
             "wall_time_s": round(time.perf_counter() - start, 1),
             "command": plan.command(*pinned, drop=["scenarios"]),

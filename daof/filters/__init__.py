@@ -2,12 +2,14 @@
 
 Classical baselines: ``KalmanFilter`` and ``StationaryKalmanFilter`` (linear system), ``EKF`` and
 ``UKF`` (filterpy), the batched bootstrap ``ParticleFilter`` and ``JointParameterPF``, which also
-infers a scenario's uncertain model parameters.
+infers a scenario's uncertain model parameters, and ``ProposalParticleFilter``, whose proposal uses the
+measurement (for references where the bootstrap PF's weights degenerate).
 """
 
 from daof.filters.base import Filter
 from daof.filters.kalman import EKF, UKF, CovarianceRepair, KalmanFilter
 from daof.filters.particle import JointParameterPF, ParticleFilter, systematic_resample
+from daof.filters.proposal import ProposalParticleFilter
 from daof.filters.stationary_kalman import StationaryKalmanFilter
 
 __all__ = [
@@ -19,5 +21,6 @@ __all__ = [
     "CovarianceRepair",
     "ParticleFilter",
     "JointParameterPF",
+    "ProposalParticleFilter",
     "systematic_resample",
 ]

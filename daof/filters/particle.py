@@ -97,14 +97,10 @@ class ParticleFilter(Filter):
         resamples = 0
         diverged = torch.zeros(runs, dtype=torch.bool, device=y.device)
         for t in self._steps(runs, steps):
-            # x_t^i = f(x_{t-1}^i, u_{t-1}) + ξ^i, ξ^i ~ the true process noise
-            x = s.f(x, u_prev[:, t, None, :].expand(runs, n, -1)) + s.process_noise.sample((runs, n), generator)
-            # w_t^i ∝ w_{t-1}^i p_ζ(y_t − g(x_t^i, u_t))
-            innovation = y[:, t, None, :] - s.g(x, u[:, t, None, :].expand(runs, n, -1))
-            if gappy[t]:  # only the present channels: p(y_t[S] | x_t^i) = ∏_{j∈S} p_ζj(innovation_j)
-                log_p = s.measurement_noise.marginal_log_prob(innovation, present[:, t, None, :])
-            else:
-                log_p = s.measurement_noise.log_prob(innovation)
+            u_prev_t, u_t = (v[:, t, None, :].expand(runs, n, -1) for v in (u_prev, u))
+            x, log_p = self._move(
+                x, y[:, t, None, :], u_prev_t, u_t, present[:, t, None, :] if gappy[t] else None, generator, t
+            )
             log_w, w = _normalise(log_w, log_p)
             estimate = (w[..., None] * x).sum(1)  # x̂_t = Σ w^i x^i
             # a run that went non-finite stays NaN (resampling could otherwise revive it)
@@ -125,6 +121,23 @@ class ParticleFilter(Filter):
         self.stats["resamples"] += resamples
         self.stats["diverged"] += int(diverged.sum())
         return out
+
+    def _move(self, x, y, u_prev, u, present, generator, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Particles x_t [runs, N, n] from x_{t-1} and each one's log-weight increment [runs, N] at step index t.
+
+        ``y`` is [runs, 1, m]; ``present`` the mask of its present channels, None when all are.
+        The bootstrap: x_t^i = f(x_{t-1}^i, u_{t-1}) + ξ^i with ξ^i ~ the true process noise, and the
+        increment log p_ζ(y_t − g(x_t^i, u_t)).
+        """
+        s = self.model
+        x = s.f(x, u_prev) + s.process_noise.sample(x.shape[:-1], generator)
+        return x, self._log_likelihood(y - s.g(x, u), present)
+
+    def _log_likelihood(self, innovation, present) -> torch.Tensor:
+        """log p(y_t | x_t^i) from the innovations; only the present channels where some are missing:
+        p(y_t[S] | x_t^i) = ∏_{j∈S} p_ζj(innovation_j)."""
+        noise = self.model.measurement_noise
+        return noise.log_prob(innovation) if present is None else noise.marginal_log_prob(innovation, present)
 
 
 #: normalised weights of a run that sum further from 1 than this lost their normalisation in float32
