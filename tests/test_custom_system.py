@@ -99,12 +99,14 @@ learned:
   SLF: {{filter: slf}}
 classical:
   UKF: {{filter: UKF}}
-reference: [UKF]
+  PF-oracle: {{filter: ParticleFilter, seed: 2}}
+reference: [PF-oracle]
 profiles:
   tiny:
     runs: 3
     steps: 40
     frames: {{SLF: 1000}}
+    particles: {{PF-oracle: 2000}}
     overrides:
       SLF: [network.num_cells=16, collector.env_batch=4, collector.episode_steps=50, validation.runs=2,
             validation.steps=30, validation.every_frames=500, checkpoint.every_frames=500]
@@ -124,7 +126,8 @@ def test_a_system_of_the_test_module_trains_and_reports_end_to_end_by_import_pat
     out = project / "runs" / "nominal"
     results = json.loads((out / "report" / "results.json").read_text())
     assert results["system"] == PATH and results["runs"] == 3 and results["steps"] == 40
-    assert list(results["filters"]) == ["UKF", "SLF"]
+    assert list(results["filters"]) == ["UKF", "PF-oracle", "SLF"]
+    assert "reference_check" in results  # the reference was checked (doubling its particles) before any ratio
     for name, row in results["filters"].items():
         assert len(row["rmse"]) == 1 and math.isfinite(row["rmse"][0]), name
     assert (out / "report" / "report.md").read_text().count(PATH) >= 1
