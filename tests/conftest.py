@@ -30,3 +30,14 @@ def veh():
 def lin():
     """The linear-Gaussian oscillator."""
     return envs.make_system("linear")
+
+
+@pytest.fixture(scope="session")
+def local_ray():
+    """A local Ray of two CPUs for the whole session (a start costs seconds); ``run_jobs`` runs its tasks there."""
+    ray = pytest.importorskip("ray")
+    from daof.experiments.ray_jobs import start_ray
+
+    start_ray(num_cpus=2)
+    yield
+    ray.shutdown()

@@ -113,7 +113,9 @@ profiles:
 """
 
 
-def test_a_system_of_the_test_module_trains_and_reports_end_to_end_by_import_path(tmp_path, monkeypatch, capsys):
+def test_a_system_of_the_test_module_trains_and_reports_end_to_end_by_import_path(
+    local_ray, tmp_path, monkeypatch, capsys
+):
     from daof.experiments.experiment import main
     from daof.filters.learned import load_filter
 

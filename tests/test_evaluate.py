@@ -95,7 +95,7 @@ def test_paired_rmse_ratio_by_hand():
         paired_rmse_ratio(filt, ref, level=1.0)
 
 
-def test_experiment_tiny_profile_writes_a_complete_report(tmp_path, capsys):
+def test_experiment_tiny_profile_writes_a_complete_report(local_ray, tmp_path, capsys):
     """The main job (tiny profile: tiny nets, a handful of updates) runs every filter and writes
     report.md, results.csv, results.json and every figure; a second run reuses everything; the
     command the report records plans the same run."""
@@ -327,7 +327,7 @@ def test_experiment1_bad_scenario_or_profile_exits_with_one_line(tmp_path, overr
 
 
 @pytest.mark.slow
-def test_experiment1_scenarios_side_by_side_end_to_end(tmp_path, capsys):
+def test_experiment1_scenarios_side_by_side_end_to_end(local_ray, tmp_path, capsys):
     """Two scenarios at the tiny profile (one window): per-scenario reports and the combined one."""
     experiment1("profile=tiny", f"root={tmp_path}", "scenarios=[nominal,mismatch]", "profiles.tiny.windows=[20]")
     for sc in ("nominal", "mismatch"):
@@ -371,6 +371,8 @@ def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path, monkeypatch):
         ("veh2dof", ["profile=tiny", "profiles.tiny.steps=-5"], "profiles.tiny.steps must be >= 1, got -5"),
         ("veh2dof", ["window=0"], "window must be >= 1, got 0"),
         ("veh2dof", ["parallel_jobs=0"], "parallel_jobs must be >= 1, got 0"),
+        ("veh2dof", ["ray.address=auto", "parallel_jobs=2"], "parallel_jobs sizes a local Ray; the cluster at"),
+        ("veh2dof", ["ray.adress=auto"], "unknown experiment key 'ray.adress'; did you mean 'address'?"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[]"], "profiles.tiny.windows is empty: the window study"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[1,0]"], "profiles.tiny.windows must be >= 1, got 0"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[5,5]"], "names a window more than once"),
@@ -507,7 +509,7 @@ def test_a_run_of_another_config_is_set_aside_not_reused(tmp_path):
     assert (tmp_path / "slf.stale-1" / RUN_CONFIG).is_file() and not job.output_dir.exists()
 
 
-def test_a_failed_training_exits_with_one_line(tmp_path):
+def test_a_failed_training_exits_with_one_line(local_ray, tmp_path):
     from daof.experiments.jobs import TrainingJob
     from daof.experiments.runner import train
 
@@ -526,7 +528,7 @@ def test_a_failed_training_exits_with_one_line(tmp_path):
     assert "out of memory" in (tmp_path / "slf" / "train.log").read_text()
 
 
-def test_the_config_a_job_asks_for_is_pinned_when_it_starts(tmp_path, monkeypatch):
+def test_the_config_a_job_asks_for_is_pinned_when_it_starts(local_ray, tmp_path, monkeypatch):
     """A training that finishes after its configuration files were edited is done; a rerun sets it aside."""
     import daof.experiments.jobs as jobs
     from daof.experiments.runner import train

@@ -2,7 +2,7 @@
 
 The fast test runs the experiment's own pieces in process at the tiny profile (its planned training
 jobs, the shared trainers, ``run_scenario``); the slow one runs the entry end to end twice (the
-trainings as subprocesses; the second run reuses every training and study result).
+trainings as Ray tasks; the second run reuses every training and study result).
 """
 
 import json
@@ -86,7 +86,7 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_experiment2_tiny_profile_end_to_end(tmp_path, capsys):
+def test_experiment2_tiny_profile_end_to_end(local_ray, tmp_path, capsys):
     """The entry as a user runs it (subprocess trainings); a second run reuses everything."""
     args = ["profile=tiny", f"output_root={tmp_path}", f"cache_dir={tmp_path / 'cache'}"]
     main(args, experiment="veh14dof", program=SCRIPT)

@@ -308,7 +308,7 @@ TINY_SLF = [
 ]
 
 
-def test_a_truncated_best_pt_in_a_finished_job_is_written_again_from_its_checkpoint(tmp_path):
+def test_a_truncated_best_pt_in_a_finished_job_is_written_again_from_its_checkpoint(local_ray, tmp_path):
     """It used to count as finished and end every rerun in the study's load of best.pt."""
     from daof.experiments.jobs import TrainingJob, run_jobs
     from daof.filters.learned import load_filter

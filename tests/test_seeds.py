@@ -45,7 +45,7 @@ def test_the_report_gives_the_spread_over_seeds(tmp_path, lin):
 
 
 @pytest.mark.slow
-def test_an_experiment_over_two_seeds(tmp_path):
+def test_an_experiment_over_two_seeds(local_ray, tmp_path):
     """End to end (the linear check at the tiny profile, two seeds; ~2 min)."""
     main(["profile=tiny", f"output_root={tmp_path}", "training_seeds=[1,2]"], experiment="linear", program="x")
     results = json.loads((tmp_path / "report" / "results.json").read_text())

@@ -42,7 +42,7 @@ def test_a_bad_sweep_is_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_sweep_end_to_end(tmp_path):
+def test_a_sweep_end_to_end(local_ray, tmp_path):
     """Two widths of the linear check at the tiny profile (~3 min)."""
     summary = main(["--key", "network.num_cells", "--values", "8", "16", "--", "experiment=linear", "profile=tiny",
                     f"root={tmp_path}"])  # fmt: skip

@@ -42,6 +42,7 @@ __all__ = [
     "ExperimentConfig",
     "LearnedRow",
     "Profile",
+    "RaySettings",
     "Tolerance",
     "check_experiment",
     "compose_experiment",
@@ -133,6 +134,13 @@ class DropoutStudy:
 
 
 @dataclass
+class RaySettings:
+    """Where the trainings run as Ray tasks (``daof.experiments.ray_jobs``)."""
+
+    address: str | None = None  # null: a local Ray of parallel_jobs CPUs; auto or ray://host:10001: that cluster
+
+
+@dataclass
 class ExperimentConfig:
     system: str = MISSING  # a registered name, an import path pkg.mod:Cls or an entry point (daof.envs.make_system)
     title: str = MISSING  # the report's title; {scenario} is replaced by the scenario
@@ -149,7 +157,8 @@ class ExperimentConfig:
     # every learned row trains once per seed; with several, its report rows are "<row> (seed <s>)"
     training_seeds: list[int] = field(default_factory=lambda: [1])
     window: int = 20  # N of every learned row (the window study's row also at the profile's windows)
-    parallel_jobs: int = 2  # trainings run as subprocesses, one torch thread each
+    parallel_jobs: int | None = None  # trainings at once: a local Ray's CPUs, one thread each (null: every core)
+    ray: RaySettings = field(default_factory=RaySettings)
     timing_threads: int = 1  # torch threads while timing cost per estimate
     logger: str = ""  # wandb: every training and the report log an (offline) wandb run; "" none (docs/experiments.md)
     device: str = "cpu"  # cpu | cuda | cuda:<k> | auto: where the trainings and the study's learned filters run
@@ -319,8 +328,13 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
     where = f"profiles.{cfg.profile}"
     for key in ("runs", "steps"):
         _at_least(getattr(p, key), 1, f"{where}.{key}")
-    for key in ("window", "parallel_jobs", "timing_threads"):
+    for key in ("window", "timing_threads"):
         _at_least(getattr(cfg, key), 1, key)
+    if cfg.parallel_jobs is not None:
+        _at_least(cfg.parallel_jobs, 1, "parallel_jobs")
+        if cfg.ray.address is not None:
+            address = cfg.ray.address
+            raise ValueError(f"parallel_jobs sizes a local Ray; the cluster at ray.address={address} has its own CPUs")
     seeds = list(cfg.training_seeds)
     if not seeds or len(set(seeds)) != len(seeds) or any(isinstance(x, bool) or not isinstance(x, int) for x in seeds):
         raise ValueError(f"training_seeds must be distinct integers, at least one, got {seeds}")

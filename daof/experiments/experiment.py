@@ -421,7 +421,8 @@ def run_experiment(plan: Plan) -> list[Path]:
     start = time.perf_counter()
     print(f"{cfg.title.format(scenario=', '.join(names))} ({cfg.profile} profile) -> {where}")
     print("1/3 training the learned filters")
-    train([job for sp in plan.scenarios.values() for job in sp.jobs.values()], parallel=int(cfg.parallel_jobs))
+    jobs = [job for sp in plan.scenarios.values() for job in sp.jobs.values()]
+    train(jobs, parallel=cfg.parallel_jobs, address=cfg.ray.address)
 
     studies, reports = {}, {}
     for s, sp in plan.scenarios.items():

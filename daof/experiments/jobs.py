@@ -1,4 +1,4 @@
-"""Training jobs as parallel subprocesses of ``python -m daof.train``, reusing finished runs and resuming broken ones.
+"""Training jobs (``python -m daof.train``) run as Ray tasks, reusing finished runs and resuming broken ones.
 
 A job is one training with its overrides and its own output directory. A job whose
 ``summary.json`` records at least the requested number of frames is finished and reused; one
@@ -8,27 +8,36 @@ job asks for now, apart from what a continuation may change (the budget, the out
 threads and logger: ``daof.train.base.RESUMABLE_CHANGES``), so a results root can be moved or
 copied and is still reused. A directory from another config is moved aside to
 ``<dir>.stale-<n>`` and the job starts fresh. A trainer holds a lock on its directory
-(``daof.train.lock``), so a second trainer never runs in it; stopping ``run_jobs`` (an exception,
-Ctrl-C or SIGTERM) stops the trainings it started.
+(``daof.train.lock``), so a second trainer never runs in it, whichever process or machine starts it.
+
+The unfinished jobs run as Ray tasks (``daof.experiments.ray_jobs``): on a local Ray of ``parallel``
+CPUs (null: every core), one training per CPU, or on the cluster at ``address``. Without the
+``ray`` package they run one at a time as children of this process, and ``run_jobs`` says once
+that ``pip install -e ".[ray]"`` runs them in parallel. Either way each training is a child
+process that dies with its parent (``daof.experiments.training_process``), and stopping
+``run_jobs`` (an exception, Ctrl-C or SIGTERM) stops the trainings it started.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import importlib.util
 import json
 import os
 import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
+from daof.experiments.training_process import launch, resumes, stop
 from daof.io import safe_load
 from daof.train.base import PROGRESS, RUN_CONFIG, comparable_config
 from daof.train.config import compose_config
@@ -44,8 +53,9 @@ class TrainingJob:
     output_dir: Path
     total_frames: int
     overrides: list[str] = field(default_factory=list)
-    #: the command that trains, before the overrides (another interpreter, or a stand-in in tests)
-    launcher: list[str] = field(default_factory=lambda: [sys.executable, "-m", "daof.train"])
+    #: the command that trains, before the overrides (another interpreter, or a stand-in in tests);
+    #: None: ``python -m daof.train`` with the interpreter of the process that starts it (a Ray worker's)
+    launcher: list[str] | None = None
     #: folders the training must import from (a system of the user's code), put first on its PYTHONPATH
     pythonpath: list[str] = field(default_factory=list)
 
@@ -109,7 +119,7 @@ class TrainingJob:
         return target
 
     def command(self, with_resume: bool = True) -> list[str]:
-        cmd = [*self.launcher, *self.arguments]
+        cmd = [*(self.launcher or [sys.executable, "-m", "daof.train"]), *self.arguments]
         checkpoint = self.output_dir / "checkpoint.pt"
         if with_resume and checkpoint.is_file():
             cmd.append(f"resume={checkpoint}")
@@ -169,25 +179,8 @@ class _Status:
             bar.close()
 
 
-def _stop(running) -> None:
-    """Terminate the trainings still running (each saves nothing more; its last checkpoint stays)."""
-    for _, proc, _, _ in running:
-        if proc.poll() is None:
-            proc.terminate()
-    for _, proc, _, fh in running:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        fh.close()
-
-
-def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every: float = 300.0) -> None:
-    """Run the unfinished jobs, ``parallel`` at a time; raise if any of them fails. Progress: one live
-    line per running job on a terminal, else a line per job every ``status_every`` seconds.
-
-    Whatever ends this function early (an error, Ctrl-C, SIGTERM) stops the trainings it started.
-    """
+def _unfinished(jobs: list[TrainingJob], log) -> list[TrainingJob]:
+    """The jobs left to train: finished ones are reused, a run of another config is moved aside."""
     pending = []
     for job in jobs:
         if job.finished():
@@ -198,41 +191,111 @@ def run_jobs(jobs: list[TrainingJob], parallel: int = 2, log=print, status_every
             log(f"  {job.name}: {job.output_dir} was trained with another config; moved to {stale}")
         _ = job.requested_config  # pinned now: a config edited while the job runs does not fail it
         pending.append(job)
-    running: list[tuple[TrainingJob, subprocess.Popen, Path, object]] = []
+    return pending
+
+
+def _one_at_a_time(jobs: list[TrainingJob]) -> Iterator[tuple | None]:
+    """Without Ray: each training in turn as a child of this process; the events of ``run_on_ray``."""
+    for job in jobs:
+        proc = launch(job)
+        try:
+            yield job, "started", resumes(proc)
+            while proc.poll() is None:
+                time.sleep(2.0)
+                yield None
+        finally:
+            stop(proc)
+        yield job, "ended", proc.returncode
+
+
+def _ray_installed() -> bool:
+    return importlib.util.find_spec("ray") is not None
+
+
+@contextlib.contextmanager
+def _events(jobs: list[TrainingJob], parallel: int | None, address: str | None, log):
+    """The jobs' events as Ray tasks (Ray is up for the whole ``with``), or one training at a time
+    when the ``ray`` package is missing."""
+    if _ray_installed():
+        from daof.experiments.ray_jobs import ray_session, run_on_ray
+
+        with ray_session(address, parallel):
+            yield run_on_ray(jobs)
+        return
+    if address is not None:
+        raise RuntimeError(f'ray.address={address} needs Ray, which is not installed: pip install -e ".[ray]"')
+    log('  Ray is not installed: the trainings run one at a time (pip install -e ".[ray]" runs them in parallel)')
+    yield _one_at_a_time(jobs)
+
+
+@contextlib.contextmanager
+def _sigterm_noted():
+    """A list that SIGTERM appends to while the ``with`` lasts (handlers live in the main thread only).
+
+    The handler raises nothing: an exception raised inside Ray's wait becomes Ray's own exit.
+    """
+    received = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+    previous = signal.signal(signal.SIGTERM, lambda *_: received.append(True))
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _ended(job: TrainingJob, exit_code: int | str, log) -> bool:
+    """Log how a training ended (``exit_code``: its exit code, or why its task failed); whether it succeeded."""
+    if exit_code == 0 and job.finished():
+        log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
+        return True
+    if exit_code == 0:
+        why = "exit 0, but no summary or readable best.pt"
+    else:
+        why = f"exit {exit_code}" if isinstance(exit_code, int) else exit_code
+    log(f"  {job.name}: FAILED ({why}); see {job.output_dir / 'train.log'}")
+    return False
+
+
+def run_jobs(
+    jobs: list[TrainingJob],
+    parallel: int | None = None,
+    address: str | None = None,
+    log=print,
+    status_every: float = 300.0,
+) -> None:
+    """Train the unfinished jobs, as Ray tasks where Ray is installed (module docstring); raise if any fails.
+
+    ``parallel``: CPUs of the local Ray, i.e. trainings at once (None: every core); ``address``: a Ray
+    cluster's instead (``auto``, ``ray://host:10001``). Progress: one live line per running job on a
+    terminal, else a line per job every ``status_every`` seconds. Whatever ends this function early
+    (an error, Ctrl-C, SIGTERM) stops the trainings it started.
+    """
+    pending = _unfinished(jobs, log)
+    if not pending:
+        return
+    running: dict[str, TrainingJob] = {}
     failed = []
     status = _Status(log, status_every)
-    main_thread = threading.current_thread() is threading.main_thread()  # signal handlers live there only
-    previous = signal.signal(signal.SIGTERM, lambda *_: sys.exit("stopped by SIGTERM")) if main_thread else None
-    try:
-        while pending or running:
-            while pending and len(running) < parallel:
-                job = pending.pop(0)
-                job.output_dir.mkdir(parents=True, exist_ok=True)
-                log_path = job.output_dir / "train.log"
-                fh = log_path.open("ab")
-                resumed = " (resuming)" if any("resume=" in c for c in job.command()) else ""
-                log(f"  {job.name}: training{resumed}, log {log_path}")
-                env = job.environment(dict(os.environ))
-                proc = subprocess.Popen(job.command(), stdout=fh, stderr=subprocess.STDOUT, env=env)
-                running.append((job, proc, log_path, fh))
-            time.sleep(2.0)
-            for entry in list(running):
-                job, proc, log_path, fh = entry
-                if proc.poll() is None:
-                    continue
-                fh.close()
-                running.remove(entry)
-                if proc.returncode == 0 and job.finished():
-                    log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
-                else:
-                    failed.append(job.name)
-                    why = f"exit {proc.returncode}" if proc.returncode else "exit 0, but no summary or readable best.pt"
-                    log(f"  {job.name}: FAILED ({why}); see {log_path}")
-            status.show([job for job, *_ in running])
-    finally:
-        status.close()
-        _stop(running)
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+    # SIGTERM's handler is set after Ray starts: Ray's own would end this process without a cleanup
+    with _events(pending, parallel, address, log) as events, _sigterm_noted() as sigterm, contextlib.closing(events):
+        try:
+            for event in events:
+                if sigterm:
+                    sys.exit("stopped by SIGTERM")
+                if event is not None:
+                    job, what, detail = event
+                    if what == "started":
+                        running[job.name] = job
+                        resuming = " (resuming)" if detail else ""
+                        log(f"  {job.name}: training{resuming}, log {job.output_dir / 'train.log'}")
+                    else:
+                        running.pop(job.name, None)
+                        if not _ended(job, detail, log):
+                            failed.append(job.name)
+                status.show(list(running.values()))
+        finally:
+            status.close()
     if failed:
         raise RuntimeError(f"training failed for {failed}; rerun the same command to resume")

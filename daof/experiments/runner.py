@@ -44,10 +44,10 @@ def command_line(program: str, *pinned: str, given: Sequence[str] = (), drop: Se
     return " ".join(["python", program, *map(shlex.quote, [*pinned, *rest])])
 
 
-def train(jobs: Sequence[TrainingJob], parallel: int, log=print) -> None:
+def train(jobs: Sequence[TrainingJob], parallel: int | None = None, address: str | None = None, log=print) -> None:
     """``run_jobs``; a failed training exits with one line naming it and its log instead of a traceback."""
     try:
-        run_jobs(list(jobs), parallel=parallel, log=log)
+        run_jobs(list(jobs), parallel=parallel, address=address, log=log)
     except RuntimeError as error:
         raise SystemExit(str(error)) from None
 
