@@ -156,3 +156,24 @@ def test_a_training_dies_with_the_process_that_launched_it_even_by_sigkill(tmp_p
     finally:
         if alive(child):
             os.kill(child, signal.SIGKILL)
+
+
+def test_a_trainer_in_a_ray_task_takes_its_run_directory_lock(local_ray, tmp_path):
+    """A run directory another training holds (here: this process) fails the job; nothing trains in it."""
+    from test_reliability import TINY_SLF
+
+    from daof.train.base import RUN_CONFIG
+    from daof.train.lock import lock_run_directory
+
+    job = TrainingJob("SLF", tmp_path / "slf", 400, TINY_SLF)
+    job.output_dir.mkdir()
+    (job.output_dir / RUN_CONFIG).write_text(json.dumps(job.requested_config))  # a run of this config: not stale
+    held = lock_run_directory(job.output_dir)
+    try:
+        with pytest.raises(RuntimeError, match=r"^training failed for \['SLF'\]"):
+            run_jobs([job], log=lambda _: None)
+    finally:
+        held.close()
+    log = (job.output_dir / "train.log").read_text()
+    assert f"is in use by another training (pid {os.getpid()})" in log, log
+    assert not (job.output_dir / "summary.json").exists()
