@@ -373,6 +373,7 @@ def test_the_scripts_exit_with_one_line_and_no_traceback(tmp_path, monkeypatch):
         ("veh2dof", ["parallel_jobs=0"], "parallel_jobs must be >= 1, got 0"),
         ("veh2dof", ["ray.address=auto", "parallel_jobs=2"], "parallel_jobs sizes a local Ray; the cluster at"),
         ("veh2dof", ["ray.adress=auto"], "unknown experiment key 'ray.adress'; did you mean 'address'?"),
+        ("veh2dof", ["ray.address=ray://head:10001"], "ray.address=ray://head:10001: Ray Client cannot run the tr"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[]"], "profiles.tiny.windows is empty: the window study"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[1,0]"], "profiles.tiny.windows must be >= 1, got 0"),
         ("veh2dof", ["profile=tiny", "profiles.tiny.windows=[5,5]"], "names a window more than once"),

@@ -137,7 +137,7 @@ class DropoutStudy:
 class RaySettings:
     """Where the trainings run as Ray tasks (``daof.experiments.ray_jobs``)."""
 
-    address: str | None = None  # null: a local Ray of parallel_jobs CPUs; auto or ray://host:10001: that cluster
+    address: str | None = None  # null: a local Ray of parallel_jobs CPUs; auto or host:6379: that cluster
 
 
 @dataclass
@@ -330,6 +330,11 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
         _at_least(getattr(p, key), 1, f"{where}.{key}")
     for key in ("window", "timing_threads"):
         _at_least(getattr(cfg, key), 1, key)
+    if str(cfg.ray.address).startswith("ray://"):
+        raise ValueError(
+            f"ray.address={cfg.ray.address}: Ray Client cannot run the trainings (they stream their start); "
+            "run the experiment on a node of the cluster with ray.address=auto or its head's host:6379"
+        )
     if cfg.parallel_jobs is not None:
         _at_least(cfg.parallel_jobs, 1, "parallel_jobs")
         if cfg.ray.address is not None:

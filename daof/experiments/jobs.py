@@ -11,7 +11,7 @@ copied and is still reused. A directory from another config is moved aside to
 (``daof.train.lock``), so a second trainer never runs in it, whichever process or machine starts it.
 
 The unfinished jobs run as Ray tasks (``daof.experiments.ray_jobs``): on a local Ray of ``parallel``
-CPUs (null: every core), one training per CPU, or on the cluster at ``address``. Without the
+CPUs (None: every core), one training per CPU, or on the cluster at ``address``. Without the
 ``ray`` package they run one at a time as children of this process, and ``run_jobs`` says once
 that ``pip install -e ".[ray]"`` runs them in parallel. Either way each training is a child
 process that dies with its parent (``daof.experiments.training_process``), and stopping
@@ -268,9 +268,10 @@ def run_jobs(
     """Train the unfinished jobs, as Ray tasks where Ray is installed (module docstring); raise if any fails.
 
     ``parallel``: CPUs of the local Ray, i.e. trainings at once (None: every core); ``address``: a Ray
-    cluster's instead (``auto``, ``ray://host:10001``). Progress: one live line per running job on a
-    terminal, else a line per job every ``status_every`` seconds. Whatever ends this function early
-    (an error, Ctrl-C, SIGTERM) stops the trainings it started.
+    cluster's instead (``auto``, ``host:6379``; not Ray Client's ``ray://``, which has no streaming
+    tasks). Progress: one live line per running job on a terminal, else a line per job every
+    ``status_every`` seconds. Whatever ends this function early (an error, Ctrl-C, SIGTERM) stops
+    the trainings it started.
     """
     pending = _unfinished(jobs, log)
     if not pending:
