@@ -23,7 +23,7 @@ __all__ = ["DAOFv1", "EXCESS_COVER"]
 #: UKF's own P⁺ standing in for the optimum's error, the improvable part is its excess error
 #: √max(RMSE² − P⁺, 0) (``daof.envs.scales``): none on a consistent UKF (the bound stays
 #: correction_sigmas · √P⁺), large where the UKF is far from optimal and sure of itself.
-EXCESS_COVER = 2.0
+EXCESS_COVER = 3.0
 
 
 @register
