@@ -10,7 +10,11 @@ Nothing here presumes the answer. Every learned filter, env and study reads two 
   W = 1/(n·s²), DSAC-T's exploration, the validation score): where the system has a model, the
   RMSE of a UKF on the simulated data; without one (or where the UKF fails), the RMSE of the best
   linear estimator of x_t from the last ``REGRESSION_WINDOW`` measurements and controls, fitted
-  on half of the runs and measured on the other half.
+  on half of the runs and measured on the other half;
+* the UKF's **excess error** per state, √max(RMSE² − mean diag P⁺, 0): the part of its error that
+  its own covariance does not account for. A consistent UKF has none; one far from optimal and
+  sure of itself (a multimodal posterior) has much. DAOF-v1 widens its residual's bound to it
+  (``daof.filters.learned.daof_v1``). Zero where the error scale is not a UKF's.
 
 ``data_scales(system)`` computes them once per system (``SCALES_RUNS`` × ``SCALES_STEPS`` steps of
 seed ``SCALES_SEED``) and caches them by a fingerprint of the system's simulated data, so that
@@ -42,15 +46,18 @@ _CACHE: dict[str, SystemScales] = {}
 
 @dataclass(frozen=True)
 class SystemScales:
-    """Per state [n]: the output range ``low``/``high`` and the ``error`` scale; ``source`` names the error's origin."""
+    """Per state [n]: the output range ``low``/``high``, the ``error`` scale and the UKF's ``excess`` error;
+    ``source`` names the error's origin."""
 
     low: torch.Tensor
     high: torch.Tensor
     error: torch.Tensor
     source: str
+    excess: torch.Tensor
 
     def to(self, device) -> SystemScales:
-        return replace(self, low=self.low.to(device), high=self.high.to(device), error=self.error.to(device))
+        moved = {key: getattr(self, key).to(device) for key in ("low", "high", "error", "excess")}
+        return replace(self, **moved)
 
 
 def data_scales(system) -> SystemScales:
@@ -59,8 +66,8 @@ def data_scales(system) -> SystemScales:
     if key not in _CACHE:
         data = system.simulate(SCALES_RUNS, SCALES_STEPS, SCALES_SEED, device=_device(system))
         low, high = output_range(data["state"])
-        error, source = error_scale(system, data)
-        _CACHE[key] = SystemScales(low.cpu(), high.cpu(), error.cpu(), source)
+        error, source, excess = error_scale(system, data)
+        _CACHE[key] = SystemScales(low.cpu(), high.cpu(), error.cpu(), source, excess.cpu())
     return _CACHE[key]
 
 
@@ -72,8 +79,9 @@ def output_range(states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return (low - RANGE_MARGIN * width).float(), (high + RANGE_MARGIN * width).float()
 
 
-def error_scale(system, data) -> tuple[torch.Tensor, str]:
-    """(RMSE per state, its source): a UKF's where the system has a model and it runs, else a linear estimator's."""
+def error_scale(system, data) -> tuple[torch.Tensor, str, torch.Tensor]:
+    """(RMSE per state, its source, excess): a UKF's RMSE and excess error where the system has a model and
+    the UKF runs, else a linear estimator's RMSE and no excess."""
     if system.has_model:
         from daof.filters.kalman import UKF  # the filters import the systems
 
@@ -81,13 +89,14 @@ def error_scale(system, data) -> tuple[torch.Tensor, str]:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 ukf = UKF(system)  # its _run: ``run`` would also judge divergence, against these scales
-                estimates = ukf._run(*ukf.validate(data))
-            rmse = (estimates.double() - data["state"].double()).pow(2).flatten(0, 1).mean(0).sqrt()
-            if torch.isfinite(rmse).all() and (rmse > 0).all():
-                return rmse.float(), "UKF"
+                estimates, variances = ukf._run(*ukf.validate(data), variances=True)
+            mse = (estimates.double() - data["state"].double()).pow(2).flatten(0, 1).mean(0)
+            claimed = variances.double().flatten(0, 1).mean(0)
+            if torch.isfinite(mse).all() and (mse > 0).all():
+                return mse.sqrt().float(), "UKF", (mse - claimed).clamp_min(0).sqrt().float()
         except (RuntimeError, ValueError, torch.linalg.LinAlgError):
             pass
-    return linear_estimator_rmse(data).float(), "linear estimator"
+    return linear_estimator_rmse(data).float(), "linear estimator", torch.zeros(system.state_dim)
 
 
 def linear_estimator_rmse(data, window: int = REGRESSION_WINDOW) -> torch.Tensor:

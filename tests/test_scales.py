@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -92,3 +94,36 @@ def test_a_learned_filter_keeps_the_scales_it_trained_with(kind, tmp_path):
     learned.error_scale.mul_(2.0)  # as if the data had given other scales when it trained
     learned.save(tmp_path / "f.pt")
     assert torch.equal(load_filter(tmp_path / "f.pt").error_scale, learned.error_scale)
+
+
+REPOSITORY = str(Path(__file__).resolve().parents[1])  # examples/ungm is imported from here
+
+
+def test_the_ukfs_excess_error_is_none_where_it_is_consistent_and_large_where_it_is_sure_and_wrong(monkeypatch):
+    """linear: the UKF is the Kalman filter, its P⁺ accounts for all its error; UNGM: the squared
+    measurement hides the sign of x, the UKF's Gaussian posterior misses half of it."""
+    monkeypatch.syspath_prepend(REPOSITORY)
+    assert torch.equal(make_system("linear").scales().excess, torch.zeros(2))
+    ungm = make_system("examples.ungm.system:UNGM").scales()
+    assert ungm.source == "UKF" and (ungm.excess > 0.5 * ungm.error).all()
+
+
+@pytest.mark.parametrize("name", ["linear", "examples.ungm.system:UNGM"])
+def test_daof_v1s_bound_covers_the_excess_error_and_is_unchanged_without_one(name, monkeypatch):
+    monkeypatch.syspath_prepend(REPOSITORY)
+    from daof.filters.learned.daof_v1 import EXCESS_COVER
+    from daof.filters.learned.network import SCHEDULE_STEPS
+    from daof.train.schedules import ukf_schedule
+
+    learned = LearnedFilter(FilterConfig(kind="DAOF-v1", system=name, window=2, num_cells=8, correction_sigmas=0.5))
+    schedule = ukf_schedule(learned.system, seed=1)
+    learned.set_schedules(schedule)
+    claimed = schedule["estimate"].float()[:SCHEDULE_STEPS]
+    claimed = torch.cat([claimed, claimed[-1:].expand(SCHEDULE_STEPS - len(claimed), -1)])
+    narrow = 0.5 * torch.maximum(claimed, learned.error_scale)
+    excess = learned.system.scales().excess
+    if name == "linear":
+        assert torch.equal(learned.correction_scale, narrow)
+    else:
+        assert torch.allclose(learned.correction_scale, (EXCESS_COVER * excess).expand_as(narrow))
+        assert (learned.correction_scale > 2 * narrow).all()

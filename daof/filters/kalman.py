@@ -176,7 +176,8 @@ class _KalmanBase(Filter):
         """R[S, S] of the present channels S (the marginal covariance of their noise)."""
         return self.R[np.ix_(present, present)]
 
-    def _run(self, y, u_prev, u):
+    def _run(self, y, u_prev, u, variances: bool = False):
+        """Estimates [runs, steps, n] (NaN after a run's failure); with ``variances``, also diag P⁺ per step."""
         device = y.device
         y, u_prev, u = (v.detach().double().cpu().numpy() for v in (y, u_prev, u))
         runs, steps = y.shape[:2]
@@ -184,6 +185,7 @@ class _KalmanBase(Filter):
         present = ~np.isnan(y)
         gappy = (~present).any(-1).tolist()
         out = np.full((runs, steps, self.system.state_dim), np.nan)
+        var = np.full_like(out, np.nan) if variances else None
         self.repair.count = 0
         diverged = 0
         for r in range(runs):
@@ -200,10 +202,13 @@ class _KalmanBase(Filter):
                     if not np.isfinite(x).all():
                         raise FloatingPointError("non-finite estimate")
                     out[r, t] = x
+                    if var is not None:
+                        var[r, t] = np.diag(kf.P)
             except (FloatingPointError, np.linalg.LinAlgError, ValueError):
                 diverged += 1  # the rest of this run stays NaN
         self.stats = {"repairs": self.repair.count, "diverged": diverged}
-        return torch.from_numpy(out).to(device=device, dtype=self.dtype)
+        estimates = torch.from_numpy(out).to(device=device, dtype=self.dtype)
+        return (estimates, torch.from_numpy(var).to(device=device, dtype=self.dtype)) if variances else estimates
 
     def covariance_schedule(self, data) -> dict[str, torch.Tensor]:
         """Per step t = 1..T, averaged over runs, the √diag of this filter's covariances (float64).

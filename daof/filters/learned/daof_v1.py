@@ -2,8 +2,8 @@
 learned, bounded residual.
 
 π ∈ [−1, 1]ⁿ; K̄_t is a UKF's mean Kalman gain at step t, ν_t the innovation of the prediction and
-b_t = correction_sigmas · max(that UKF's √diag P⁺_t, its RMSE on the system's simulated data,
-``error_scale``) (``set_schedules``). Where its frame allows (it holds
+b_t = max(correction_sigmas · max(that UKF's √diag P⁺_t, its RMSE on the system's simulated data,
+``error_scale``), EXCESS_COVER · its excess error) (``set_schedules``). Where its frame allows (it holds
 u_t and u_{t−1}, or the system has no controls) the network also reads ν_t / √diag S_t. A missing
 measurement reads as its prediction (``missing_fill``).
 """
@@ -16,7 +16,14 @@ from daof.filters.learned.base import UpdateFilter, register
 from daof.filters.learned.config import FilterConfig
 from daof.filters.learned.network import SCHEDULE_STEPS, schedule_row
 
-__all__ = ["DAOFv1"]
+__all__ = ["DAOFv1", "EXCESS_COVER"]
+
+#: the residual's bound covers this many RMS of the improvable part of the reference's error. By the
+#: orthogonality of the MMSE estimate, E‖x − x̂_ref‖² = E‖x − x̂_opt‖² + E‖x̂_opt − x̂_ref‖²; with the
+#: UKF's own P⁺ standing in for the optimum's error, the improvable part is its excess error
+#: √max(RMSE² − P⁺, 0) (``daof.envs.scales``): none on a consistent UKF (the bound stays
+#: correction_sigmas · √P⁺), large where the UKF is far from optimal and sure of itself.
+EXCESS_COVER = 3.0
 
 
 @register
@@ -89,7 +96,7 @@ class DAOFv1(UpdateFilter):
     def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
         """The per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
 
-        The update bound b_t = correction_sigmas · schedule["estimate"]_t (√diag P⁺_t), the gain
+        The update bound b_t (module docstring; schedule["estimate"]_t is √diag P⁺_t), the gain
         K̄_t = schedule["gain"]_t and, with the innovation input, its scale √diag S_t =
         schedule["innovation"]_t. A shorter schedule is held at its last row. Stored in the checkpoint.
         """
@@ -99,10 +106,12 @@ class DAOFv1(UpdateFilter):
             return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
 
         sigmas = self.config.correction_sigmas
-        # never narrower than the reference's actual error on simulated data: a UKF that claims less
-        # than it reaches (far from optimal, overconfident) leaves the residual room to correct it
+        # never narrower than the reference's actual error on simulated data, and wide enough for what
+        # an optimal filter would change of it where the UKF is overconfident (EXCESS_COVER)
         claimed = rows(schedule["estimate"]).clamp_min(1e-12)
-        self.correction_scale.copy_(sigmas * torch.maximum(claimed, self.error_scale.to(claimed)))
+        bound = sigmas * torch.maximum(claimed, self.error_scale.to(claimed))
+        excess = EXCESS_COVER * self.system.scales().excess.to(claimed)
+        self.correction_scale.copy_(torch.maximum(bound, excess))
         self.reference_gain.copy_(rows(schedule["gain"]))
         if self.innovation_input:
             self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
