@@ -244,7 +244,7 @@ def test_classical_only_studies_the_classical_filters_without_training():
     sp = plan.scenarios["nominal"]
     assert sp.jobs == {} and plan.cfg.learned == {} and plan.cfg.requirements == {}
     assert list(plan.cfg.classical) == ["KF", "KF-stationary", "PF"] and plan.cfg.reference == ["KF"]
-    assert len(plan_experiment("linear", ["profile=paper"]).scenarios["nominal"].jobs) == 3
+    assert len(plan_experiment("linear", ["profile=paper"]).scenarios["nominal"].jobs) == 4
 
 
 def test_the_ungm_example_is_the_papers_model(monkeypatch):

@@ -53,6 +53,20 @@ def test_layout_problems_finds_a_wide_row_and_a_legend_on_the_data():
     assert any("legend overlaps" in p for p in problems)
 
 
+def test_a_one_panel_figure_gets_a_legend_that_fits_its_width():
+    """Four columns of long names are wider than one panel: the legend takes fewer columns, not the edge."""
+    labels = ["DAOF-v1", "DAOF-v2", "KalmanNet", "SLF", "UKF (validation set)", "PF-oracle (validation set)"]
+    fig, axes = figures._grid(1, "toy")
+    for k, label in enumerate(labels):
+        axes[0].plot(range(5), [k] * 5, label=label)
+    figures._legend_below(fig, axes)
+    assert figures.layout_problems(fig) == [] and fig.legends[0]._ncols < 4
+    fig.legends[0].remove()
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=6)
+    assert "a legend is wider than the figure (cut off)" in figures.layout_problems(fig)
+    plt.close(fig)
+
+
 @pytest.mark.parametrize("state_dim", [2, 6])
 def test_every_figure_is_readable(tmp_path, state_dim):
     """Rendered under DAOF_STRICT_FIGURES=1 (conftest): ``_save`` raises on any layout problem."""

@@ -40,7 +40,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
         in (report / "report.md").read_text()
     )
     rows = results["filters"]
-    assert list(rows) == ["KF", "KF-stationary", "PF", "DAOF-v1", "DAOF-v2", "KalmanNet"]
+    assert list(rows) == ["KF", "KF-stationary", "PF", "SLF", "DAOF-v1", "DAOF-v2", "KalmanNet"]
     for name, row in rows.items():
         assert len(row["rmse"]) == 2 and all(math.isfinite(v) for v in row["rmse"]), name
         # the ratio column is this filter's RMSE over the KF's, per state
@@ -65,7 +65,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
         table = list(csv.DictReader(fh))
     assert [r["filter"] for r in table] == list(rows) and float(table[0]["ratio_position"]) == 1.0
     # the trainings: python -m daof.train system=linear filter=daof_v1|daof_v2 with the profile's overrides
-    assert set(results["training"]) == {"DAOF-v1", "DAOF-v2", "KalmanNet"}
+    assert set(results["training"]) == {"SLF", "DAOF-v1", "DAOF-v2", "KalmanNet"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
     # DAOF-v2 acts by increments, its default (daof/conf/filter/daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20-s1" / "run_config.json").read_text())
@@ -82,7 +82,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # a second run reuses every training and every study result
     linear(*args)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 3 and out.count("reused finished result") == 6
+    assert out.count("finished earlier, reusing") == 4 and out.count("reused finished result") == 7
 
 
 @pytest.mark.parametrize(

@@ -465,3 +465,28 @@ def test_linear_report_table():
     for printed, value in zip(quoted(text("docs/linear_check.md"), rf"DAOF-v1 is {NUM}× / {NUM}× the KF"),
                               ratio_oracle(rep, "DAOF-v1"), strict=True):  # fmt: skip
         agrees(printed, value)
+
+
+# ---------------------------------------------------------------- a system daof does not ship (UNGM)
+
+
+def test_ungm_table_and_the_gap_daof_v1_closes():
+    """docs/results/ungm/README.md: every row of its table, and the share of the UKF–reference gap DAOF-v1 closes."""
+    rep, doc = report("ungm"), text("docs/results/ungm/README.md")
+    pooled = {n: float(np.sqrt((np.asarray(f["per_run_rmse"]) ** 2).mean())) for n, f in rep["filters"].items()}
+    reference = rep["reference"]
+    for name in rep["filters"]:
+        cell = rf"\| \**{re.escape(name)}(?: \([^)|]*\))?\** \|"  # the name, then its budget or particles
+        pattern = rf"{cell} \**{NUM}\** \| \**{NUM}\** \|"
+        value, ratio = quoted(doc, pattern)
+        agrees(value, pooled[name], slack=1e-3 * pooled[name]), agrees(ratio, pooled[name] / pooled[reference])
+        if name != "UKF":
+            paired = rep["paired_with"]["filters"][name]
+            row = rf"{cell}[^|]*\|[^|]*\| \**{NUM} \[{NUM}, {NUM}\]\** \| {NUM} / 100"
+            for printed, key in zip(quoted(doc, row), ("ratio", "low", "high", "better_runs")):
+                agrees(printed, paired[key][0])
+    (share,) = quoted(doc, rf"DAOF-v1 closes {NUM} % of the gap between the UKF and the converged reference")
+    closed = (pooled["UKF"] - pooled["DAOF-v1"]) / (pooled["UKF"] - pooled[reference])
+    agrees(share, 100 * closed)
+    assert closed >= 0.5 and rep["paired_with"]["filters"]["DAOF-v1"]["high"][0] < 1
+    assert rep["reference_check"]["how"] == "converged"

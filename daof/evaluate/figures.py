@@ -90,8 +90,18 @@ def _legend_below(fig, axes, ncol: int = 4) -> None:
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             entries.setdefault(label, handle)
-    if entries:
-        fig.legend(entries.values(), entries.keys(), loc="outside lower center", ncol=min(ncol, len(entries)))
+    for columns in range(min(ncol, len(entries)), 0, -1):  # as many columns as fit the figure's width
+        legend = fig.legend(entries.values(), entries.keys(), loc="outside lower center", ncol=columns)
+        if columns == 1 or not _beyond_the_figure(fig, legend):
+            return
+        legend.remove()
+
+
+def _beyond_the_figure(fig, legend) -> bool:
+    """Whether ``legend`` sticks out of the figure's left or right edge (it would be cut off when saved)."""
+    fig.canvas.draw()
+    box, width = legend.get_window_extent(), fig.bbox.width
+    return box.x0 < -0.5 or box.x1 > width + 0.5
 
 
 def _count_label(x, _pos=None) -> str:
@@ -116,6 +126,8 @@ def layout_problems(fig) -> list[str]:
         problems.append(f"{max(rows.values())} panels in a row (at most {COLUMNS})")
     legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
     for legend in legends:
+        if _beyond_the_figure(fig, legend):
+            problems.append("a legend is wider than the figure (cut off)")
         box = legend.get_window_extent()
         for ax in fig.axes:
             if box.overlaps(ax.get_window_extent()):

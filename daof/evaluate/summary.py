@@ -36,6 +36,7 @@ HEADLINES = (
     Headline("Experiment I: veh2dof, mismatch (μ and B unknown to the filters)", "docs/results/experiment1-mismatch"),
     Headline("Experiment II: veh14dof, model-free (ratios to the SLF)", "docs/results/experiment2", reference="SLF"),
     Headline("Optimality check: linear-Gaussian system (the Kalman filter is optimal)", "docs/results/linear"),
+    Headline("A system daof does not ship: the UNGM example (examples/ungm)", "docs/results/ungm"),
 )
 
 
