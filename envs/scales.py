@@ -1,6 +1,7 @@
-"""A system's scales from its own simulated data: the output range and the typical error per state.
+"""A system's scales from its own simulated data: output range, typical error and the UKF's excess error per state.
 
-Nothing here presumes the answer. Every learned filter, env and study reads two things of a system:
+Nothing here presumes the answer. Every learned filter, env and study reads the first two of a system,
+DAOF-v1's bound the third:
 
 * the **output range** [low, high] per state (the env's action spec, the range learned estimates
   are squashed or clamped onto, the base of the divergence limits): the range of the simulated true
