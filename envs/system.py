@@ -35,6 +35,8 @@ class StochasticSystem:
     scenario: str = "nominal"
     scenarios: tuple[str, ...] = ("nominal",)
     dt: float
+    #: the unit of ``dt`` in reports and figures; "step" for a discrete-time model (its dt is 1)
+    time_unit: str = "s"
     state_names: tuple[str, ...]
     state_units: tuple[str, ...]
     measurement_names: tuple[str, ...]

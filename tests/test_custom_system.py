@@ -219,6 +219,7 @@ def test_the_training_cli_takes_an_import_path():
     cfg = compose_config(["filter=slf", f"system={PATH}", "overrides.q=0.4"])
     assert cfg.system == PATH and cfg.overrides.q == 0.4 and cfg.kind == "SLF"
     assert cfg.collector.total_frames == 1_600_000  # the filter's own budget: no system file is involved
+    assert cfg.output_dir == f"runs/{PATH.replace(':', '.')}/nominal/slf-N20-s1"  # no ':' (Windows refuses it)
     with pytest.raises(ValueError, match=f"module '{__name__}' has no attribute 'Nope'"):
         compose_config(["filter=slf", f"system={__name__}:Nope"])
     with pytest.raises(ValueError, match="unknown parameter"):

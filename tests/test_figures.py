@@ -23,6 +23,7 @@ def _study(state_dim: int = 2, runs: int = 6, steps: int = 40, names=NAMES):
         name="toy",
         scenario="nominal",
         dt=0.01,
+        time_unit="s",
         state_dim=state_dim,
         state_names=[f"s{j}" for j in range(state_dim)],
         state_units=["m"] * state_dim,
@@ -32,12 +33,13 @@ def _study(state_dim: int = 2, runs: int = 6, steps: int = 40, names=NAMES):
 
 
 def test_every_series_of_a_report_has_its_own_style():
-    styles = figures.series_styles(NAMES + ["KF", "KF-stationary", "KalmanNet"])
+    styles = figures.series_styles(NAMES + ["KF", "KF-stationary", "KalmanNet", "PF-proposal"])
     pairs = {(s["color"], s["ls"]) for s in styles.values()}
-    assert len(pairs) == len(NAMES) + 3
+    assert len(pairs) == len(NAMES) + 4
     assert styles["UKF"]["ls"] == "--" and styles["DAOF-v1"]["ls"] == "-" and styles["KalmanNet"]["ls"] == "-"
     # a filter keeps its style whichever other series a figure shows
     assert figures.series_styles(["SLF", "my filter"])["SLF"] == styles["SLF"]
+    assert figures.series_styles(["my filter", "PF-proposal"])["PF-proposal"] == styles["PF-proposal"]
     assert figures.series_styles(["UKF (validation set)"])["UKF (validation set)"] == styles["UKF"]
 
 
@@ -95,6 +97,17 @@ def test_every_figure_is_readable(tmp_path, state_dim):
     for path in filter(None, paths):
         width, height = Image.open(path).size
         assert width <= figures.MAX_WIDTH_PX and height <= 1.2 * width * (state_dim if "run0.png" in str(path) else 1)
+
+
+@pytest.mark.parametrize(("unit", "label"), [("s", "time [s]"), ("step", "step")])
+def test_the_time_axis_says_the_systems_time_unit(tmp_path, unit, label, monkeypatch):
+    study = _study()
+    study.system.time_unit = unit
+    drawn = []
+    monkeypatch.setattr(figures, "_save", lambda fig, path: drawn.append(fig) or path)
+    figures.plot_one_run(study, tmp_path / "run0.png")
+    assert {ax.get_xlabel() for ax in drawn[0].axes} == {label}
+    plt.close(drawn[0])
 
 
 def test_window_study_draws_the_paired_intervals(tmp_path):

@@ -47,11 +47,12 @@ def is_learned(name: str) -> bool:
     return name.startswith(LEARNED_PREFIXES)
 
 
-#: filters with a fixed style in every report (others take the next free ones)
+#: filters with a fixed style in every report (others take the next free ones); the first ten get
+#: tab20's strong colours, so they go to the filters every report shows
 KNOWN_SERIES = (
-    "DAOF-v1", "DAOF-v2", "SLF", "KalmanNet", "UKF", "EKF", "PF-oracle", "PF", "KF", "PF-joint",
-    "KF-stationary", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)",
-)  # fmt: skip  (the ten strong colours go to the filters every report shows)
+    *("DAOF-v1", "DAOF-v2", "SLF", "KalmanNet", "UKF", "EKF", "PF-oracle", "PF", "KF", "PF-joint"),
+    *("KF-stationary", "PF-proposal", "DAOF-v1 (N=10)", "DAOF-v1 (N=5)", "DAOF-v1 (N=1)"),
+)
 
 
 def series_styles(names) -> dict[str, dict]:
@@ -157,7 +158,13 @@ def _reference_name(names) -> str | None:
     return model_based[0] if model_based else None
 
 
-def _state_row(axes, t, truth, estimates: dict, styles: dict, label: str) -> None:
+def _time_label(system) -> str:
+    """The time axis of a system: "step" for a discrete-time model, else "time [<unit>]"."""
+    unit = system.time_unit
+    return "step" if unit == "step" else f"time [{unit}]"
+
+
+def _state_row(axes, t, truth, estimates: dict, styles: dict, label: str, time_label: str) -> None:
     """One state in up to three panels: model-based estimates, learned estimates, errors (learned + reference)."""
     groups = {
         "model-based filters": {n: e for n, e in estimates.items() if not is_learned(n)},
@@ -179,7 +186,7 @@ def _state_row(axes, t, truth, estimates: dict, styles: dict, label: str) -> Non
     err.set_title("estimation error", fontsize=9)
     err.set_ylabel(f"error {label}")
     for ax in axes:
-        ax.set_xlabel("time [s]")
+        ax.set_xlabel(time_label)
         ax.grid(alpha=0.3)
 
 
@@ -204,7 +211,7 @@ def plot_one_run(study, path: Path, run: int = 0, names=None) -> Path:
     for j, (state, unit) in enumerate(zip(s.state_names, s.state_units)):
         estimates = {name: study.estimates[name][run, :, j] for name in names}
         row = axes[j * per_state : (j + 1) * per_state]
-        _state_row(row, t, truth[:, j], estimates, styles, f"{state} [{unit}]")
+        _state_row(row, t, truth[:, j], estimates, styles, f"{state} [{unit}]", _time_label(s))
     _legend_below(fig, axes)
     return _save(fig, path)
 
@@ -218,7 +225,7 @@ def plot_one_run_state(study, j: int, path: Path, run: int = 0, names=None, unit
     t = torch.arange(1, truth.shape[0] + 1) * s.dt
     fig, axes = _grid(_panels_per_state(names), f"{s.name} ({s.scenario}), run {run}: {state}")
     estimates = {name: study.estimates[name][run, :, j] for name in names}
-    _state_row(axes, t, truth, estimates, series_styles(names), f"{state} [{unit}]")
+    _state_row(axes, t, truth, estimates, series_styles(names), f"{state} [{unit}]", _time_label(s))
     _legend_below(fig, axes)
     return _save(fig, path)
 

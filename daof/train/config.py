@@ -157,7 +157,7 @@ class TrainConfig:
     threads: int = 1  # torch threads (the MLPs are small: one thread per run is the efficient choice)
     device: str = "cpu"  # cpu | cuda | cuda:<k> | auto (a GPU if there is one): where training runs (daof.device)
     resume: str | None = None  # a checkpoint.pt of the same run to continue
-    output_dir: str = "runs/${system}/${scenario}/${run_name}-N${window}-s${seed}"
+    output_dir: str = "runs/${path_part:${system}}/${scenario}/${run_name}-N${window}-s${seed}"
     seeds: Seeds = field(default_factory=Seeds)
     network: Network = field(default_factory=Network)
     dropout: Dropout = field(default_factory=Dropout)
@@ -254,8 +254,15 @@ def check_config(cfg: DictConfig) -> None:
         raise ValueError(str(error).splitlines()[0]) from None
 
 
+def path_part(name: str) -> str:
+    """``name`` as one directory name on every OS: a system's import path ``pkg.mod:Cls`` -> ``pkg.mod.Cls``."""
+    return str(name).replace(":", ".")
+
+
 def register_configs() -> None:
-    """Register the schema with Hydra's ConfigStore (``defaults: [train_schema, ...]`` in ``daof/conf``)."""
+    """Register the schema with Hydra's ConfigStore (``defaults: [train_schema, ...]`` in ``daof/conf``)
+    and the ``path_part`` resolver of its default ``output_dir``."""
+    OmegaConf.register_new_resolver("path_part", path_part, replace=True)
     ConfigStore.instance().store(name="train_schema", node=TrainConfig)
     # the system group's choice for a system of the user's code: no file of its own, the filter's budget
     ConfigStore.instance().store(group="system", name=USER_SYSTEM, node={}, package="_global_")

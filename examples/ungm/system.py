@@ -47,7 +47,8 @@ class UNGM(StochasticSystem):
 
     name = "ungm"
     params_class = UNGMParams
-    dt = 1.0  # one step per time unit
+    dt = 1.0  # a discrete-time model: one step per time unit
+    time_unit = "step"
     state_names = ("x",)
     state_units = ("-",)
     measurement_names = ("y",)
