@@ -71,3 +71,32 @@ def test_ungm_numbers_in_the_readme():
     assert min(f, key=lambda n: f[n]["rmse"][0] if n in beats else float("inf")) == "SLF"  # "the SLF most"
     closed = (ukf - f["DAOF-v1"]["rmse"][0]) / (ukf - f["PF-oracle"]["rmse"][0])
     assert closed > 0.5  # "closes more than half of the UKF's gap"
+
+
+def _toy_results(per_run: dict) -> dict:
+    """A results.json of two states whose filters have the given per-run RMSEs [runs, 2]."""
+    filters = {n: {"per_run_rmse": r.tolist(), "rmse": r.pow(2).mean(0).sqrt().tolist()} for n, r in per_run.items()}
+    return {"states": ["a", "b"], "filters": filters}
+
+
+def test_learned_winners_names_the_best_learned_filter_per_state_over_its_seeds():
+    g = torch.Generator().manual_seed(0)
+    base = 1 + torch.rand(40, 2, generator=g)
+    per_run = {
+        "UKF": 0.5 * base,  # not learned: never a winner
+        "DAOF-v1 (seed 1)": base * torch.tensor([0.90, 1.0]),
+        "DAOF-v1 (seed 2)": base * torch.tensor([0.80, 1.0]),
+        "SLF (seed 1)": base * torch.tensor([1.00, 1.001]),
+        "SLF (seed 2)": base * torch.stack([torch.full((40,), 0.85), 1 + 0.1 * torch.randn(40, generator=g)], 1),
+        "DAOF-v1 (N=5)": 0.1 * base,  # the window study: not compared
+    }
+    from daof.evaluate.summary import learned_winners
+
+    lines = learned_winners(_toy_results(per_run))
+    a, b = (line for line in lines if line.startswith("- "))
+    ratio = ((0.9**2 + 0.8**2) / (1 + 0.85**2)) ** 0.5  # over seeds, pooled: 0.917
+    assert a == f"- a: **DAOF-v1**, {ratio:.3f} [{ratio:.3f}, {ratio:.3f}] × SLF; lower on 2 of 2 seeds"
+    rmse_b = {n: r[:, 1].pow(2).mean().sqrt() for n, r in per_run.items()}
+    lower = sum(rmse_b[f"DAOF-v1 (seed {k})"] < rmse_b[f"SLF (seed {k})"] for k in (1, 2))
+    assert b.startswith("- b: no clear winner, DAOF-v1 ") and b.endswith(f"× SLF; lower on {lower} of 2 seeds")
+    assert learned_winners(_toy_results({"UKF": base, "SLF": base})) == []
