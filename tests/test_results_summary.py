@@ -100,3 +100,21 @@ def test_learned_winners_names_the_best_learned_filter_per_state_over_its_seeds(
     lower = sum(rmse_b[f"DAOF-v1 (seed {k})"] < rmse_b[f"SLF (seed {k})"] for k in (1, 2))
     assert b.startswith("- b: no clear winner, DAOF-v1 ") and b.endswith(f"× SLF; lower on {lower} of 2 seeds")
     assert learned_winners(_toy_results({"UKF": base, "SLF": base})) == []
+
+
+def test_a_filter_trained_on_several_seeds_is_one_row_of_the_summary(tmp_path):
+    from daof.evaluate.summary import Headline, headline_table
+
+    g = torch.Generator().manual_seed(1)
+    base = 1 + torch.rand(30, 2, generator=g)
+    per_run = {"UKF": base, **{f"SLF (seed {k})": base * (0.9 + 0.05 * k) for k in (1, 2, 3)}, "SLF (N=5)": base}
+    results = {**_toy_results(per_run), "runs": 30, "steps": 10, "profile": "toy", "reference": "UKF"}
+    for name, row in results["filters"].items():
+        row["cost_ms"] = {"UKF": 0.2, "SLF (seed 1)": 0.1, "SLF (seed 2)": 0.2, "SLF (seed 3)": 0.3}.get(name)
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "results.json").write_text(json.dumps(results))
+    rows = [line for line in headline_table(tmp_path, Headline("toy", "r")) if line.startswith("| ")][1:]
+    pooled = ((0.95**2 + 1.0**2 + 1.05**2) / 3) ** 0.5
+    assert [r.split(" | ")[0] for r in rows] == ["| UKF", "| SLF (3 seeds)", "| SLF (N=5)"]
+    assert rows[1].split(" | ")[1] == f"{pooled:.3f} [{pooled:.3f}, {pooled:.3f}] (seeds 0.950–1.050)"
+    assert rows[1].endswith(" | 0.200 |") and rows[2].endswith(" | – |")

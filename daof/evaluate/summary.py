@@ -45,12 +45,34 @@ HEADLINES = (
 )
 
 
-def _ratio_cells(filters: dict, name: str, reference: str, states: int) -> list[str]:
-    if name == reference:
+def _ratio_cells(filters: dict, rows: list[str], reference: str, states: int) -> list[str]:
+    """Per state the ratio of ``rows`` (one filter; several rows: its training seeds, pooled) to the
+    reference with its paired interval, and with seeds the range of the seeds' own ratios."""
+    if rows == [reference]:
         return ["1 (reference)"] * states
-    run, ref = (torch.tensor(filters[n]["per_run_rmse"], dtype=torch.float64) for n in (name, reference))
-    c = paired_rmse_ratio(run, ref)
-    return [f"{r:.3f} [{lo:.3f}, {hi:.3f}]" for r, lo, hi in zip(c["ratio"], c["low"], c["high"])]
+    ref = torch.tensor(filters[reference]["per_run_rmse"], dtype=torch.float64)
+    c = paired_rmse_ratio(_over_seeds(filters, rows), ref)
+    cells = [f"{r:.3f} [{lo:.3f}, {hi:.3f}]" for r, lo, hi in zip(c["ratio"], c["low"], c["high"])]
+    if len(rows) > 1:
+        own = torch.tensor([[filters[r]["rmse"][j] for j in range(states)] for r in rows]) / torch.tensor(
+            filters[reference]["rmse"]
+        )
+        cells = [f"{cell} (seeds {lo:.3f}–{hi:.3f})" for cell, lo, hi in zip(cells, own.amin(0), own.amax(0))]
+    return cells
+
+
+def _table_rows(filters: dict) -> dict[str, list[str]]:
+    """The table's rows in report order: a learned filter's training seeds become one row, "<filter> (k seeds)"."""
+    seeded = {n: rows for n, rows in learned_filters(filters).items() if len(rows) > 1}
+    out: dict[str, list[str]] = {}
+    for name in filters:
+        match = SEED_ROW.match(name)
+        if match and match["filter"] in seeded:
+            rows = seeded[match["filter"]]
+            out.setdefault(f"{match['filter']} ({len(rows)} seeds)", list(rows.values()))
+        else:
+            out[name] = [name]
+    return out
 
 
 def headline_table(root: Path, headline: Headline) -> list[str]:
@@ -66,9 +88,10 @@ def headline_table(root: Path, headline: Headline) -> list[str]:
         "| filter | " + " | ".join(f"{s} / {reference} [95 % interval]" for s in states) + " | cost [ms] |",
         "|---|" + "---|" * (len(states) + 1),
     ]
-    for name, r in filters.items():
-        cost = f"{r['cost_ms']:.3f}" if r.get("cost_ms") is not None else "–"
-        lines.append(f"| {name} | " + " | ".join(_ratio_cells(filters, name, reference, len(states))) + f" | {cost} |")
+    for label, rows in _table_rows(filters).items():
+        costs = [filters[r]["cost_ms"] for r in rows if filters[r].get("cost_ms") is not None]
+        cost = f"{sum(costs) / len(costs):.3f}" if costs else "–"
+        lines.append(f"| {label} | " + " | ".join(_ratio_cells(filters, rows, reference, len(states))) + f" | {cost} |")
     return lines + [""]
 
 
@@ -124,7 +147,9 @@ def summary_markdown(root: Path, headlines=HEADLINES) -> str:
         lines += learned_winners(json.loads((root / headline.report / "results.json").read_text()))
     lines += [
         "Ratios below 1 beat the reference; the interval is a 95 % paired bootstrap over runs "
-        "(`daof.evaluate.metrics.paired_rmse_ratio`). Costs are per estimate at batch 1 on one thread "
+        "(`daof.evaluate.metrics.paired_rmse_ratio`). A filter trained on k seeds is one row: the RMSE "
+        "over its seeds' runs, pooled, and after it the range of the seeds' own ratios; its cost is their mean. "
+        "Costs are per estimate at batch 1 on one thread "
         "of the 2-core machine the report was made on, in that report's run: compare filters within a table.",
         "",
         END,
