@@ -177,3 +177,13 @@ def test_a_trainer_in_a_ray_task_takes_its_run_directory_lock(local_ray, tmp_pat
     log = (job.output_dir / "train.log").read_text()
     assert f"is in use by another training (pid {os.getpid()})" in log, log
     assert not (job.output_dir / "summary.json").exists()
+
+
+def test_a_local_rays_trainings_run_at_the_drivers_priority(local_ray):
+    """Ray's default nice 15 would let any other process take the cores from the trainings."""
+    import ray
+
+    if os.nice(0) != 0:
+        pytest.skip("the tests themselves run niced")
+    niceness = ray.remote(num_cpus=1)(lambda: os.nice(0))
+    assert ray.get(niceness.remote()) == 0
