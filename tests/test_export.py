@@ -9,16 +9,18 @@ import torch
 
 from daof.export import (
     FORMATS,
-    StreamingStep,
+    contract,
     example_inputs,
     export_filter,
     load_step,
     read_contract,
     stream,
+    streaming_step,
 )
 from daof.export.__main__ import main
 from daof.filters import UKF
 from daof.filters.learned import make_filter
+from daof.filters.learned.kalmannet import STATE_KEYS
 from daof.train.schedules import ukf_schedule
 
 onnxruntime = pytest.importorskip("onnxruntime")
@@ -31,6 +33,7 @@ FORMS = {
     "DAOF-v1-hold": ("DAOF-v1", {}),
     "DAOF-v2-increment": ("DAOF-v2", {"v2_action": "increment"}),
     "DAOF-v2-flags": ("DAOF-v2", {"missing_mask": True}),
+    "KalmanNet": ("KalmanNet", {}),
 }
 STEPS = 500
 
@@ -61,17 +64,13 @@ def gappy_data(system, runs: int = 3, steps: int = STEPS):
     return data
 
 
-def step_through(step: StreamingStep, data) -> torch.Tensor:
+def step_through(step, data) -> torch.Tensor:
     """The step module called in Python step by step (state carried as the contract says)."""
-    info = {"inputs": [{"name": n, "shape": ["batch", w]} for n, w in _widths(step).items()]}
-    if step.closed_loop:
-        info["initial"] = {"prev_estimate": step.filter.system.prior.mean.tolist()}
-    else:
-        info["initial"] = {}
+    info = contract(step, {})
     return stream(lambda inputs: step(*(inputs.get(n) for n in step.arguments)), info, *_signals(data))
 
 
-def _widths(step: StreamingStep) -> dict[str, int]:
+def _widths(step) -> dict[str, int]:
     args = example_inputs(step)
     return {name: a.shape[-1] for name, a in zip(step.arguments, args) if a is not None}
 
@@ -104,13 +103,13 @@ def test_step_module_equals_eager_streaming(form):
     data = gappy_data(f.system, steps=120)
     eager = f.run_streaming(data)
     with torch.no_grad():
-        torch.testing.assert_close(step_through(StreamingStep(f), data), eager, rtol=0, atol=0)
+        torch.testing.assert_close(step_through(streaming_step(f), data), eager, rtol=0, atol=0)
     # the gaps reach the estimates: the same data without them gives others
     full = f.system.simulate(3, 120, seed=20261207)
     assert not torch.equal(f.run_streaming(full), eager)
 
 
-@pytest.fixture(scope="module", params=["DAOF-v1", "DAOF-v2", "SLF"])
+@pytest.fixture(scope="module", params=["DAOF-v1", "DAOF-v2", "SLF", "KalmanNet"])
 def exported(request, tmp_path_factory):
     """(filter, its export directory) with the torch.export program and the ONNX model."""
     f = tiny(request.param)
@@ -136,9 +135,10 @@ def test_contract_describes_the_step(exported):
     """The sidecar names every input and output with its shape and dtype, the state's names, units and start."""
     f, out = exported
     info = json.loads((out / "contract.json").read_text())
-    step = StreamingStep(f)
+    step = streaming_step(f)
     assert [spec["name"] for spec in info["inputs"]] == step.input_names
-    assert [spec["name"] for spec in info["outputs"]] == ["estimate", "next_window"]
+    assert [spec["name"] for spec in info["outputs"]] == step.output_names
+    assert step.output_names[0] == "estimate" and info["arguments"] == list(step.arguments)
     widths = _widths(step)
     for spec in info["inputs"]:
         assert spec["shape"] == ["batch", widths[spec["name"]]]
@@ -146,10 +146,14 @@ def test_contract_describes_the_step(exported):
     estimate = info["outputs"][0]
     assert estimate["names"] == ["beta", "yaw_rate"] and estimate["units"] == ["rad", "rad/s"]
     assert info["files"] == {"torch": FORMATS["torch"], "onnx": FORMATS["onnx"]}
-    assert ("prev_estimate" in info["initial"]) == (f.kind != "SLF")
+    # every carried input starts at a stated value and is fed by an output
+    assert set(info["carry"]) - {"step"} == set(info["initial"]) - {"step"}
+    assert {source for name, source in info["carry"].items() if name != "step"} <= set(step.output_names)
+    carried = {"SLF": {"window"}, "KalmanNet": {f"state_{k}" for k in STATE_KEYS}}
+    assert set(info["carry"]) - {"step"} == carried.get(f.kind, {"window", "prev_estimate"})
     session = onnxruntime.InferenceSession(str(out / info["files"]["onnx"]), providers=["CPUExecutionProvider"])
     assert [i.name for i in session.get_inputs()] == step.input_names
-    assert [o.name for o in session.get_outputs()] == ["estimate", "next_window"]
+    assert [o.name for o in session.get_outputs()] == step.output_names
 
 
 def test_command_exports_a_checkpoint(tmp_path, capsys):

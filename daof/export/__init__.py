@@ -1,6 +1,6 @@
 """Export a trained learned filter as a self-contained streaming step (docs/deploy.md).
 
-``export_filter(filt, out, formats)`` writes the step (``StreamingStep``) as a ``torch.export``
+``export_filter(filt, out, formats)`` writes the step (``streaming_step``) as a ``torch.export``
 program, an AOTInductor package and an ONNX model, with the JSON contract beside them;
 ``python -m daof.export CHECKPOINT --out DIR`` does it from a checkpoint. ``load_step`` and
 ``stream`` run what was written.
@@ -14,11 +14,12 @@ from pathlib import Path
 from daof.export.artifacts import FORMATS, ONNX_OPSET, example_inputs, export_program, write
 from daof.export.contract import CONTRACT_FILE, contract, read_contract, write_contract
 from daof.export.runtime import load_step, stream, trajectory
-from daof.export.step import StreamingStep
+from daof.export.step import KalmanNetStep, StreamingStep, streaming_step
 
 __all__ = [
     "CONTRACT_FILE",
     "FORMATS",
+    "KalmanNetStep",
     "ONNX_OPSET",
     "StreamingStep",
     "contract",
@@ -29,6 +30,7 @@ __all__ = [
     "load_step",
     "read_contract",
     "stream",
+    "streaming_step",
     "trajectory",
     "write",
 ]
@@ -39,15 +41,17 @@ def export_filter(filt, out: str | Path, formats=("torch", "onnx"), source: dict
     from daof.filters.learned import LearnedFilter
 
     if not isinstance(filt, LearnedFilter):
-        raise ValueError(f"only a learned filter (DAOF-v1, DAOF-v2, SLF) exports, not a {type(filt).__name__}")
+        raise ValueError(
+            f"only a learned filter (DAOF-v1, DAOF-v2, SLF, KalmanNet) exports, not a {type(filt).__name__}"
+        )
     unknown = [fmt for fmt in formats if fmt not in FORMATS]
     if unknown or not formats:
         raise ValueError(f"export formats must be some of {sorted(FORMATS)}, got {list(formats)}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    step = StreamingStep(filt)
+    step = streaming_step(filt)
     program = export_program(step)
-    files = {fmt: write(program, fmt, out).name for fmt in formats}
+    files = {fmt: write(program, fmt, out, step.output_names).name for fmt in formats}
     info = contract(step, files, source)
     if "onnx" in formats:
         info["onnx_opset"] = ONNX_OPSET

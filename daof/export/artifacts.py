@@ -1,4 +1,5 @@
-"""Write a ``StreamingStep`` as files: a ``torch.export`` program, an AOTInductor package, an ONNX model.
+"""Write a filter's step (``StreamingStep``, ``KalmanNetStep``) as files: a ``torch.export`` program,
+an AOTInductor package, an ONNX model.
 
 Each writer traces the step with ``torch.export.export`` (batch size dynamic) and writes its file
 atomically (a temporary file, then rename). ``FORMATS`` maps a format name to its file name.
@@ -10,8 +11,7 @@ import os
 from pathlib import Path
 
 import torch
-
-from daof.export.step import StreamingStep
+from torch import nn
 
 __all__ = ["AOTI_CONFIGS", "FORMATS", "ONNX_OPSET", "example_inputs", "export_program", "write"]
 
@@ -25,7 +25,7 @@ ONNX_OPSET = 20
 AOTI_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATEN"}
 
 
-def example_inputs(step: StreamingStep, batch: int = 2) -> tuple[torch.Tensor | None, ...]:
+def example_inputs(step: nn.Module, batch: int = 2) -> tuple[torch.Tensor | None, ...]:
     """Arguments of ``step`` at ``batch`` (None where it takes none), from its initial state."""
     s = step.filter.system
     state = step.initial_state(batch)
@@ -36,7 +36,7 @@ def example_inputs(step: StreamingStep, batch: int = 2) -> tuple[torch.Tensor | 
     return tuple(values.get(name) for name in step.arguments)
 
 
-def export_program(step: StreamingStep) -> torch.export.ExportedProgram:
+def export_program(step: nn.Module) -> torch.export.ExportedProgram:
     """The step traced by ``torch.export.export`` with a dynamic batch dimension (traced at batch 2)."""
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     args = example_inputs(step)
@@ -46,8 +46,9 @@ def export_program(step: StreamingStep) -> torch.export.ExportedProgram:
         )
 
 
-def write(program: torch.export.ExportedProgram, fmt: str, out: Path) -> Path:
-    """Write ``program`` in format ``fmt`` into directory ``out``; returns the file written."""
+def write(program: torch.export.ExportedProgram, fmt: str, out: Path, output_names=("estimate", "next_window")) -> Path:
+    """Write ``program`` in format ``fmt`` into directory ``out`` (ONNX outputs named ``output_names``);
+    returns the file written."""
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; valid: {sorted(FORMATS)}")
     path = Path(out) / FORMATS[fmt]
@@ -58,7 +59,7 @@ def write(program: torch.export.ExportedProgram, fmt: str, out: Path) -> Path:
         elif fmt == "aoti":
             torch._inductor.aoti_compile_and_package(program, package_path=str(tmp), inductor_configs=AOTI_CONFIGS)
         else:
-            _write_onnx(program, tmp)
+            _write_onnx(program, tmp, list(output_names))
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -66,11 +67,11 @@ def write(program: torch.export.ExportedProgram, fmt: str, out: Path) -> Path:
     return path
 
 
-def _write_onnx(program: torch.export.ExportedProgram, path: Path) -> None:
+def _write_onnx(program: torch.export.ExportedProgram, path: Path, output_names: list[str]) -> None:
     """The ONNX model of ``program`` (torch.onnx's dynamo exporter); inputs keep the program's names."""
     onnx_program = torch.onnx.export(
         program,
-        output_names=list(StreamingStep.output_names),
+        output_names=output_names,
         opset_version=ONNX_OPSET,
         dynamo=True,
         verbose=False,

@@ -10,8 +10,9 @@ import json
 from pathlib import Path
 
 import torch
+from torch import nn
 
-from daof.export.step import StreamingStep
+from daof.export.step import KALMANNET_STATE, KalmanNetStep
 from daof.io import atomic_write_text
 
 __all__ = ["CONTRACT_FILE", "contract", "read_contract", "write_contract"]
@@ -23,23 +24,45 @@ def _tensor(name: str, width: int | str, dtype: str, meaning: str, **more) -> di
     return {"name": name, "shape": ["batch", width], "dtype": dtype, "meaning": meaning, **more}
 
 
-def contract(step: StreamingStep, files: dict[str, str], source: dict | None = None) -> dict:
-    """The sidecar of ``step`` (plain data): ``files`` maps format -> file name, ``source`` says where it came from."""
-    filt, s, layout = step.filter, step.filter.system, step.layout
-    n, m, c, width = s.state_dim, s.measurement_dim, s.control_dim, layout.width
-    gaps = "its prediction g(f(x̂_{t−1}, u_{t−1}), u_t)" if step.predict_gaps else "its last present value"
-    state = {"names": list(s.state_names), "units": list(s.state_units), "scale": s.error_scale.tolist()}
-    described = {
+def _signals(s, gaps: str) -> dict[str, dict]:
+    """The step's per-step inputs y_t, u_t, u_{t−1}; ``gaps`` says how a missing channel is read."""
+    m, c = s.measurement_dim, s.control_dim
+    return {
         "measurement": _tensor(
             "measurement",
             m,
             "float32",
-            f"y_t; NaN marks a missing channel, read as {gaps}",
+            f"y_t; NaN marks a missing channel, {gaps}",
             names=list(s.measurement_names),
             units=list(s.measurement_units),
         ),
         "control": _tensor("control", c, "float32", "u_t", names=list(s.control_names)),
         "prev_control": _tensor("prev_control", c, "float32", "u_{t−1}", names=list(s.control_names)),
+    }
+
+
+def _state(s) -> dict:
+    return {"names": list(s.state_names), "units": list(s.state_units), "scale": s.error_scale.tolist()}
+
+
+def contract(step: nn.Module, files: dict[str, str], source: dict | None = None) -> dict:
+    """The sidecar of ``step`` (plain data): ``files`` maps format -> file name, ``source`` says where it came from.
+
+    ``inputs`` and ``outputs`` in order; ``arguments`` every argument of the step's ``forward`` (those
+    not in ``inputs`` take None); ``initial`` the carried inputs' values before the first measurement
+    (a list: a row for every batch entry; a string: zeros of the input's width) and ``carry`` which
+    output feeds each of them at the next step.
+    """
+    if isinstance(step, KalmanNetStep):
+        return _kalmannet_contract(step, files, source)
+    filt, s, layout = step.filter, step.filter.system, step.layout
+    n, width = s.state_dim, layout.width
+    gaps = (
+        "read as its prediction g(f(x̂_{t−1}, u_{t−1}), u_t)" if step.predict_gaps else "read as its last present value"
+    )
+    state = _state(s)
+    described = {
+        **_signals(s, gaps),
         "window": _tensor("window", width, "float32", f"h_{{t−1}}, the carried window: {layout.describe()}"),
         "prev_estimate": _tensor("prev_estimate", n, "float32", "x̂_{t−1}, the last estimate", **state),
         "step": _tensor("step", 1, "int64", "t = 1, 2, …: the index of this measurement since the reset"),
@@ -62,10 +85,50 @@ def contract(step: StreamingStep, files: dict[str, str], source: dict | None = N
         "window": layout.window,
         "frame": [list(field) for field in layout.fields],
         "missing_fill": "prediction" if step.predict_gaps else "hold",
+        "arguments": list(step.arguments),
         "inputs": inputs,
         "outputs": outputs,
         "initial": initial,
         "carry": carry,
+        "files": files,
+        "torch": torch.__version__,
+        "source": source or {},
+    }
+
+
+#: what each of KalmanNet's carried tensors holds (``KalmanNetState``)
+_KALMANNET_MEANING = {
+    "state_estimate": "x̂_{t−1}",
+    "state_prev_estimate": "x̂_{t−2}",
+    "state_prev_prior": "x̂⁻_{t−1} = f(x̂_{t−2}, u_{t−2})",
+    "state_prev_measurement": "y_{t−1}, each channel's last present value",
+    "state_h_q": "the Q-GRU's hidden state",
+    "state_h_sigma": "the Σ-GRU's hidden state",
+    "state_h_s": "the S-GRU's hidden state",
+}
+
+
+def _kalmannet_contract(step: KalmanNetStep, files: dict[str, str], source: dict | None) -> dict:
+    filt, s = step.filter, step.filter.system
+    start = step.initial_state(1)
+    gaps = "adds nothing to the update (no channel present: the step only predicts)"
+    carried = {
+        name: _tensor(name, start[name].shape[-1], "float32", _KALMANNET_MEANING[name]) for name in KALMANNET_STATE
+    }
+    described = {**_signals(s, gaps), **carried}
+    outputs = [_tensor("estimate", s.state_dim, "float32", "x̂_t", **_state(s))]
+    outputs += [{**carried[name], "name": f"next_{name}", "meaning": f"feed back as {name}"} for name in carried]
+    return {
+        "filter": filt.kind,
+        "class": type(filt).__name__,
+        "system": s.name,
+        "scenario": s.scenario,
+        "missing_fill": "prediction",
+        "arguments": list(step.arguments),
+        "inputs": [described[name] for name in step.input_names],
+        "outputs": outputs,
+        "initial": {name: start[name][0].tolist() for name in carried},
+        "carry": {name: f"next_{name}" for name in carried},
         "files": files,
         "torch": torch.__version__,
         "source": source or {},

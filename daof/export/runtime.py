@@ -1,9 +1,9 @@
 """Run an exported step: load an artifact as a callable, and stream a trajectory through it.
 
-``load_step(directory, fmt)`` gives ``step(inputs) -> (estimate, next_window)`` for inputs a dict
-of tensors by the contract's input names, whichever the format: the ``torch.export`` program
-(``torch.export.load``), the AOTInductor package (``aoti_load_package``) or the ONNX model
-(onnxruntime, one thread). ``stream`` carries the state as the contract says.
+``load_step(directory, fmt)`` gives ``step(inputs) -> outputs`` (the contract's outputs in order,
+the estimate first) for inputs a dict of tensors by the contract's input names, whichever the
+format: the ``torch.export`` program (``torch.export.load``), the AOTInductor package
+(``aoti_load_package``) or the ONNX model (onnxruntime, one thread). ``stream`` carries the state as the contract says.
 """
 
 from __future__ import annotations
@@ -38,10 +38,11 @@ def load_step(directory: str | Path, fmt: str, threads: int = 1):
 
         return step
     module = torch.export.load(path).module()
+    arguments = info.get("arguments", StreamingStep.arguments)  # contracts before KalmanNet's had none
 
     def step(inputs: dict[str, torch.Tensor]):
         with torch.no_grad():
-            return module(*(inputs.get(name) for name in StreamingStep.arguments))
+            return module(*(inputs.get(name) for name in arguments))
 
     return step
 
@@ -57,8 +58,7 @@ def _onnx_step(path: Path, names: list[str], threads: int):
     run = session.run
 
     def step(inputs: dict[str, torch.Tensor]):
-        estimate, window = run(None, {name: inputs[name].numpy() for name in names})
-        return torch.from_numpy(estimate), torch.from_numpy(window)
+        return tuple(torch.from_numpy(out) for out in run(None, {name: inputs[name].numpy() for name in names}))
 
     return step
 
@@ -73,29 +73,38 @@ def stream(step, info: dict, measurement, control=None, prev_control=None) -> to
 
 
 def trajectory(step, info: dict, measurement, control=None, prev_control=None):
-    """A function that streams the data through ``step`` and returns the estimates (``stream``, prepared)."""
+    """A function that streams the data through ``step`` and returns the estimates (``stream``, prepared).
+
+    The carried inputs start at the contract's ``initial`` values and take the outputs its ``carry``
+    names; ``step`` (t = 1, 2, …) is an input of its own, set before the loop.
+    """
     runs, steps = measurement.shape[:2]
     spec = {entry["name"]: entry for entry in info["inputs"]}
+    outputs = [entry["name"] for entry in info["outputs"]]
+    carry = {name: outputs.index(source) for name, source in info["carry"].items() if source in outputs}
     per_step = {"measurement": measurement.unbind(1)}
     if "control" in spec:
         per_step |= {"control": control.unbind(1), "prev_control": prev_control.unbind(1)}
     per_step = [{key: value[t].contiguous() for key, value in per_step.items()} for t in range(steps)]
-    for t, inputs in enumerate(per_step):
-        inputs["step"] = torch.full((runs, 1), t + 1, dtype=torch.int64)
-    window0 = torch.zeros(runs, spec["window"]["shape"][1])
-    closed = "prev_estimate" in spec
-    if closed:
-        prev0 = torch.tensor(info["initial"]["prev_estimate"], dtype=torch.float32).expand(runs, -1).contiguous()
+    if "step" in spec:
+        for t, inputs in enumerate(per_step):
+            inputs["step"] = torch.full((runs, 1), t + 1, dtype=torch.int64)
+    start = {name: _initial(info["initial"][name], spec[name], runs) for name in carry}
 
     def run() -> torch.Tensor:
-        out, window = [], window0
-        prev = prev0 if closed else None
+        out, carried = [], start
         for inputs in per_step:
-            inputs["window"] = window
-            if closed:
-                inputs["prev_estimate"] = prev
-            prev, window = step(inputs)
-            out.append(prev)
+            inputs.update(carried)
+            result = step(inputs)
+            carried = {name: result[k] for name, k in carry.items()}
+            out.append(result[0])
         return torch.stack(out, 1)
 
     return run
+
+
+def _initial(value, spec: dict, runs: int) -> torch.Tensor:
+    """A carried input's value before step 1: the contract's row for every run, or zeros (a string says so)."""
+    if isinstance(value, list):
+        return torch.tensor(value, dtype=torch.float32).expand(runs, -1).contiguous()
+    return torch.zeros(runs, spec["shape"][1])

@@ -16,8 +16,14 @@ import torch
 from torch import nn
 
 from daof.envs.gaps import MISSING_KEY
+from daof.filters.learned.kalmannet import STATE_KEYS, KalmanNetState
 
-__all__ = ["StreamingStep"]
+__all__ = ["KalmanNetStep", "StreamingStep", "streaming_step"]
+
+
+def streaming_step(filt) -> nn.Module:
+    """The exportable step of a learned filter: ``KalmanNetStep`` for KalmanNet, else ``StreamingStep``."""
+    return KalmanNetStep(filt) if filt.kind == "KalmanNet" else StreamingStep(filt)
 
 
 class StreamingStep(nn.Module):
@@ -108,3 +114,71 @@ class StreamingStep(nn.Module):
             state["prev_estimate"] = self.filter.system.prior.mean.float().expand(batch, -1).clone()
         state["step"] = torch.ones(batch, 1, dtype=torch.int64)
         return state
+
+
+#: KalmanNet's carried state as inputs of its step, and the step's outputs
+KALMANNET_STATE = tuple(f"state_{k}" for k in STATE_KEYS)
+
+
+class KalmanNetStep(nn.Module):
+    """KalmanNet's step for export: (y_t, u_t, u_{t−1}, its recurrent state) -> (x̂_t, the next state).
+
+    The filter's own ``step`` (the model's f and g, the gain network, the gaps' rule), with the
+    state as seven tensors the caller carries: x̂_{t−1}, x̂_{t−2}, x̂⁻_{t−1}, y_{t−1} and the three
+    GRUs' hidden states (``KalmanNetState``).
+    """
+
+    arguments = ("measurement", "control", "prev_control", *KALMANNET_STATE)
+    output_names = ["estimate", *(f"next_{k}" for k in KALMANNET_STATE)]
+    closed_loop = True
+
+    def __init__(self, filt):
+        super().__init__()
+        self.filter = filt.eval()
+        for p in self.filter.parameters():
+            p.requires_grad_(False)
+        s = filt.system
+        self.has_controls = s.control_dim > 0
+        with torch.no_grad():  # build the model's constant caches outside tracing
+            self.filter.initial_state(1)
+
+    @property
+    def input_names(self) -> list[str]:
+        unused = {"control", "prev_control"} if not self.has_controls else set()
+        return [name for name in self.arguments if name not in unused]
+
+    def forward(
+        self,
+        measurement,
+        control,
+        prev_control,
+        state_estimate,
+        state_prev_estimate,
+        state_prev_prior,
+        state_prev_measurement,
+        state_h_q,
+        state_h_sigma,
+        state_h_s,
+    ):
+        """(x̂_t, the next state's seven tensors) of one step; control and prev_control are None without
+        controls. The arguments are named as the exported program's inputs (``KALMANNET_STATE``)."""
+        u = measurement[..., :0] if control is None else control
+        u_prev = measurement[..., :0] if prev_control is None else prev_control
+        state = KalmanNetState(
+            state_estimate,
+            state_prev_estimate,
+            state_prev_prior,
+            state_prev_measurement,
+            state_h_q,
+            state_h_sigma,
+            state_h_s,
+        )
+        estimate, new = self.filter.step(state, measurement, u_prev, u)
+        # x̂_{t−1} passes through as the next x̂_{t−2}: a copy, as ONNX renames an input that is also an output
+        return (estimate, *new._replace(prev_estimate=new.prev_estimate.clone()))
+
+    def initial_state(self, batch: int = 1) -> dict[str, torch.Tensor]:
+        """The state before the first measurement (``KalmanNet.initial_state``)."""
+        with torch.no_grad():
+            state = self.filter.initial_state(batch)
+        return {name: value.contiguous() for name, value in zip(KALMANNET_STATE, state)}
