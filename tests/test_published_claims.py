@@ -245,31 +245,41 @@ def test_experiment2_report_table():
 # ---------------------------------------------------------------- optimality check (linear, paper profile)
 
 
+def seed_rows(rep: dict, name: str) -> list[str]:
+    """The report rows of a learned filter: "<name> (seed k)" for each training seed, or the row itself."""
+    rows = [n for n in rep["filters"] if n.startswith(f"{name} (seed ")]
+    return rows or [name]
+
+
 def test_linear_requirement_met_from_per_run_rmse():
-    """ "DAOF-v1 ≤ 1.05× KF per state": recomputed from the per-run RMSEs, not from the stored ratios."""
+    """ "DAOF-v1 ≤ 1.05× KF per state" on every seed: recomputed from the per-run RMSEs, not the stored ratios."""
     rep, doc = report("linear"), text("docs/results/README.md")
     pooled = {n: np.sqrt((np.asarray(f["per_run_rmse"]) ** 2).mean(0)) for n, f in rep["filters"].items()}
-    ratio = pooled["DAOF-v1"] / pooled["KF"]
-    pos, vel, bound = quoted(doc, rf"DAOF-v1 is {NUM}× / {NUM}× the Kalman filter: the ≤ {NUM}× requirement is met")
-    agrees(pos, ratio[0]), agrees(vel, ratio[1])
-    assert (ratio <= float(bound)).all()
-    assert rep["requirements"][0]["met"] is True and "1.05" in rep["requirements"][0]["requirement"]
-    detail = rep["requirements"][0]["detail"]
-    p2, v2 = quoted(" ".join(detail.split()), rf"over all steps: position {NUM}, velocity {NUM}")
-    agrees(p2, ratio[0]), agrees(v2, ratio[1])
-    stat_p, stat_v = quoted(doc, rf"The stationary Kalman filter, the optimum the paper names, is {NUM}× / {NUM}×")
-    (
-        agrees(stat_p, (pooled["KF-stationary"] / pooled["KF"])[0]),
-        agrees(stat_v, (pooled["KF-stationary"] / pooled["KF"])[1]),
+
+    def ratios(name):
+        return np.stack([pooled[r] / pooled["KF"] for r in seed_rows(rep, name)])
+
+    assert len(seed_rows(rep, "DAOF-v1")) == 3
+    pos, vel, bound = quoted(
+        doc, rf"DAOF-v1 is at most {NUM}× / {NUM}× the Kalman filter over its three seeds: the ≤ {NUM}×"
     )
-    v2_p, v2_v = quoted(doc, rf"DAOF-v2 \(increment form\) is {NUM}× / {NUM}×")
-    agrees(v2_p, (pooled["DAOF-v2"] / pooled["KF"])[0]), agrees(v2_v, (pooled["DAOF-v2"] / pooled["KF"])[1])
-    (minutes,) = quoted(doc, rf"the report written in {NUM} min at {rep['commit']}, clean\)")
+    worst = ratios("DAOF-v1").max(0)
+    agrees(pos, worst[0]), agrees(vel, worst[1])
+    assert (worst <= float(bound)).all()
+    requirements = [r for r in rep["requirements"] if r["requirement"].startswith("DAOF-v1 (seed ")]
+    assert len(requirements) == 3 and all(r["met"] is True and "1.05" in r["requirement"] for r in requirements)
+    stat_p, stat_v = quoted(doc, rf"The stationary Kalman filter, the optimum the paper names, is {NUM}× / {NUM}×")
+    agrees(stat_p, (pooled["KF-stationary"] / pooled["KF"])[0])
+    agrees(stat_v, (pooled["KF-stationary"] / pooled["KF"])[1])
+    printed = quoted(doc, rf"DAOF-v2 \(increment form\) is {NUM}–{NUM}× / {NUM}–{NUM}× over its seeds")
+    v2 = ratios("DAOF-v2")
+    for k, value in enumerate([v2[:, 0].min(), v2[:, 0].max(), v2[:, 1].min(), v2[:, 1].max()]):
+        agrees(printed[k], value)
+    (minutes,) = quoted(doc, rf"the report written in {NUM} min at {rep['commit']}, clean")
     agrees(minutes, rep["wall_time_s"] / 60)
-    for name, prose in (("KalmanNet", "KalmanNet is"), ("SLF", "the SLF")):
+    for name, prose in (("KalmanNet", "KalmanNet is at most"), ("SLF", "the SLF at most")):
         pos, vel = quoted(doc, rf"{prose} {NUM}× / {NUM}×")
-        ratio = pooled[name] / pooled["KF"]
-        agrees(pos, ratio[0]), agrees(vel, ratio[1])
+        agrees(pos, ratios(name).max(0)[0]), agrees(vel, ratios(name).max(0)[1])
 
 
 # ---------------------------------------------------------------- scenarios
@@ -450,26 +460,32 @@ def test_experiment2_against_the_paper():
 
 
 def test_linear_report_table():
-    """docs/results/linear/README.md: RMSE, ratio to the KF over all steps and cost of every row."""
+    """docs/results/linear/README.md: RMSE, ratio to the KF over all steps and cost of every row (every seed's);
+    docs/linear_check.md: each filter's range over its seeds."""
     rep, doc = report("linear"), text("docs/results/linear/README.md")
-    rows = {
-        "KF (time-varying gain from the prior: the optimum)": "KF",
-        "KF-stationary (the steady-state gain: the optimum the paper names)": "KF-stationary",
-        "PF (1,000)": "PF",
-        "**DAOF-v1, N = 20**": "DAOF-v1",
-        "DAOF-v2, N = 20 (increment form)": "DAOF-v2",
-        "**KalmanNet**": "KalmanNet",
-        "SLF, N = 20 (1.6M samples)": "SLF",
+    names = {
+        "KF": "KF (time-varying gain from the prior: the optimum)",
+        "KF-stationary": "KF-stationary (the steady-state gain: the optimum the paper names)",
+        "PF": "PF (1,000)",
     }
     cell = r"\**\[" + NUM + ", " + NUM + r"\]\**"
-    for prose, name in rows.items():
-        got = quoted(doc, rf"\| {re.escape(prose)} \| {cell} \| \**{NUM} / {NUM}\** \| {NUM} ms \|")
+    for name in rep["filters"]:
+        prose = re.escape(names.get(name, name))
+        got = quoted(doc, rf"\| \**{prose}\** \| {cell} \| \**{NUM} / {NUM}\** \| {NUM} ms \|")
         values = [*rmse(rep, name), *ratio_oracle(rep, name), rep["filters"][name]["cost_ms"]]
         for printed, value in zip(got, values, strict=True):
             agrees(printed, value)
-    for printed, value in zip(quoted(text("docs/linear_check.md"), rf"DAOF-v1 is {NUM}× / {NUM}× the KF"),
-                              ratio_oracle(rep, "DAOF-v1"), strict=True):  # fmt: skip
+    check = text("docs/linear_check.md")
+    rows = {"KalmanNet": "KalmanNet", "SLF, N = 20": "SLF", "DAOF-v2, N = 20 (increment form)": "DAOF-v2"}
+    for prose, name in rows.items():
+        printed = quoted(check, rf"\| {re.escape(prose)} \| {NUM}–{NUM} / {NUM}–{NUM} \|")
+        r = np.stack([ratio_oracle(rep, row) for row in seed_rows(rep, name)])
+        for k, value in enumerate([r[:, 0].min(), r[:, 0].max(), r[:, 1].min(), r[:, 1].max()]):
+            agrees(printed[k], value)
+    v1 = np.stack([ratio_oracle(rep, row) for row in seed_rows(rep, "DAOF-v1")])
+    for printed, value in zip(quoted(check, rf"\| DAOF-v1, N = 20 \| {NUM} / {NUM} on every seed \|"), v1.max(0)):
         agrees(printed, value)
+    assert np.allclose(v1.min(0), v1.max(0), atol=5e-4)
 
 
 # ---------------------------------------------------------------- a system daof does not ship (UNGM)
