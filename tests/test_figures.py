@@ -41,6 +41,10 @@ def test_every_series_of_a_report_has_its_own_style():
     assert figures.series_styles(["SLF", "my filter"])["SLF"] == styles["SLF"]
     assert figures.series_styles(["my filter", "PF-proposal"])["PF-proposal"] == styles["PF-proposal"]
     assert figures.series_styles(["UKF (validation set)"])["UKF (validation set)"] == styles["UKF"]
+    # a filter's training seeds: its colour, a line style each, none of them the model-based dash
+    seeds = figures.series_styles([f"DAOF-v1 (seed {k})" for k in (1, 2, 3)] + ["UKF"])
+    assert {s["color"] for n, s in seeds.items() if n != "UKF"} == {styles["DAOF-v1"]["color"]}
+    assert len({s["ls"] for s in seeds.values()}) == 4
 
 
 def test_layout_problems_finds_a_wide_row_and_a_legend_on_the_data():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -55,20 +56,27 @@ KNOWN_SERIES = (
 )
 
 
+#: line styles of a learned filter's training seeds, in order (model-based filters are dashed)
+SEED_STYLES = ("-", "-.", ":")
+
+
 def series_styles(names) -> dict[str, dict]:
     """A distinct (colour, line style) per name, the same for a filter in every figure: tab20's
-    colours (the ten strong ones first), model-based filters dashed, learned ones solid.
+    colours (the ten strong ones first), model-based filters dashed, learned ones solid; a learned
+    filter's training seeds ("SLF (seed 2)") share its colour, with a line style each.
     A reference line's label "UKF (validation set)" takes the UKF's style."""
     palette = plt.get_cmap("tab20").colors
     order = sorted(range(20), key=lambda i: (i % 2, i))
-    styles, unknown = {}, 0
+    styles, unknown = {}, []
     for name in dict.fromkeys(names):
         base = name.removesuffix(" (validation set)")
-        if base in KNOWN_SERIES:
-            slot = KNOWN_SERIES.index(base)
-        else:
-            slot, unknown = len(KNOWN_SERIES) + unknown, unknown + 1
-        styles[name] = {"color": palette[order[slot % 20]], "ls": "-" if is_learned(base) else "--"}
+        seed = re.match(r"^(.+) \(seed (\d+)\)$", base)
+        base, k = (seed[1], int(seed[2])) if seed else (base, None)
+        if base not in KNOWN_SERIES and base not in unknown:
+            unknown.append(base)
+        slot = KNOWN_SERIES.index(base) if base in KNOWN_SERIES else len(KNOWN_SERIES) + unknown.index(base)
+        ls = "--" if not is_learned(base) else "-" if k is None else SEED_STYLES[(k - 1) % len(SEED_STYLES)]
+        styles[name] = {"color": palette[order[slot % 20]], "ls": ls}
     return styles
 
 
