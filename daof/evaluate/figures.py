@@ -266,7 +266,7 @@ def plot_learning_curves(
         for name, history in curves.items():
             if history:
                 xs = [h["frames"] for h in history]
-                ax.plot(xs, [h[f"rmse_{state}"] for h in history], marker=".", label=name, color=styles[name]["color"])
+                ax.plot(xs, [h[f"rmse_{state}"] for h in history], marker=".", label=name, **styles[name])
         for label, values in (references or {}).items():
             ax.axhline(values[j], lw=1.0, label=label, color=styles[label]["color"], ls=styles[label]["ls"])
         ax.set_yscale("log")
