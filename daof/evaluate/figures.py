@@ -43,6 +43,10 @@ MAX_WIDTH_PX = COLUMNS * PANEL[0] * DPI + 200
 LEARNED_PREFIXES = ("DAOF", "SLF", "KalmanNet")
 
 
+#: a learned filter's row trained on one of several seeds: "DAOF-v1 (seed 2)"
+SEED_ROW = re.compile(r"^(?P<filter>.+) \(seed (?P<seed>\d+)\)$")
+
+
 def is_learned(name: str) -> bool:
     """Whether ``name`` is a learned filter's row (DAOF-v1, DAOF-v2 (N=5), SLF, KalmanNet, …)."""
     return name.startswith(LEARNED_PREFIXES)
@@ -70,8 +74,8 @@ def series_styles(names) -> dict[str, dict]:
     styles, unknown = {}, []
     for name in dict.fromkeys(names):
         base = name.removesuffix(" (validation set)")
-        seed = re.match(r"^(.+) \(seed (\d+)\)$", base)
-        base, k = (seed[1], int(seed[2])) if seed else (base, None)
+        seed = SEED_ROW.match(base)
+        base, k = (seed["filter"], int(seed["seed"])) if seed else (base, None)
         if base not in KNOWN_SERIES and base not in unknown:
             unknown.append(base)
         slot = KNOWN_SERIES.index(base) if base in KNOWN_SERIES else len(KNOWN_SERIES) + unknown.index(base)
