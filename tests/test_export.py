@@ -186,7 +186,7 @@ def test_command_exports_a_checkpoint(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("form", ["DAOF-v1", "DAOF-v2", "SLF"])
+@pytest.mark.parametrize("form", ["DAOF-v1", "DAOF-v2", "SLF", "KalmanNet"])
 def test_aoti_package_equals_eager(form, tmp_path):
     """The AOTInductor package (compiled C++) on the same 500-step trajectory: max |Δ| ≤ 1e-5 of each state's scale."""
     f = tiny(form)
