@@ -16,6 +16,7 @@ import torch
 
 from daof.evaluate.metrics import paired_rmse_ratio
 from daof.evaluate.report import PAIRED_DRAWS
+from daof.evaluate.summary import learned_filters, learned_winners
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
@@ -156,8 +157,6 @@ def test_experiment1_daof_v1_and_kalmannet_below_ukf_on_every_seed():
     excluded = [sum(paired(rep, row, "high")[s] < 1 for row in seed_rows(rep, "DAOF-v1")) for s in (0, 1)]
     assert "exclude 1 on β for one seed and on r for two" in doc and excluded == [1, 2]
     # the tie, recomputed from the per-run RMSEs pooled over each filter's seeds
-    from daof.evaluate.summary import learned_winners
-
     lines = learned_winners(rep)
     assert any(line.startswith("- beta: no clear winner, KalmanNet 1.000 [0.990, 1.010] × DAOF-v1") for line in lines)
     assert any(
@@ -307,8 +306,7 @@ def test_experiment2_report_table():
 
 def seed_rows(rep: dict, name: str) -> list[str]:
     """The report rows of a learned filter: "<name> (seed k)" for each training seed, or the row itself."""
-    rows = [n for n in rep["filters"] if n.startswith(f"{name} (seed ")]
-    return rows or [name]
+    return list(learned_filters(rep["filters"]).get(name, {None: name}).values())
 
 
 def test_linear_requirement_met_from_per_run_rmse():

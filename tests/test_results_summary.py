@@ -9,7 +9,15 @@ from pathlib import Path
 import torch
 
 from daof.evaluate.metrics import paired_rmse_ratio
-from daof.evaluate.summary import BEGIN, END, summary_markdown
+from daof.evaluate.summary import (
+    BEGIN,
+    END,
+    Headline,
+    headline_table,
+    learned_filters,
+    learned_winners,
+    summary_markdown,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,13 +46,11 @@ def test_the_summary_script_checks_the_readme():
 def test_experiment1_daof_v1_and_kalmannet_tie_and_beat_the_ukf_as_the_readme_says():
     r = _results("experiment1")
     f = r["filters"]
-    seeds = {
-        name: [n for n in f if n.startswith(f"{name} (seed ")] for name in ("DAOF-v1", "KalmanNet", "SLF", "DAOF-v2")
-    }
-    assert all(len(rows) == 3 for rows in seeds.values())  # "three training seeds per learned filter"
+    seeds = {name: list(rows.values()) for name, rows in learned_filters(f).items()}
+    assert set(seeds) == {"DAOF-v1", "KalmanNet", "SLF", "DAOF-v2"} and all(
+        len(rows) == 3 for rows in seeds.values()
+    )  # "three training seeds per learned filter"
     readme = " ".join((ROOT / "README.md").read_text().split())
-    from daof.evaluate.summary import learned_winners
-
     lines = learned_winners(r)  # "tie": the pooled intervals both reach 1, printed as in the README
     assert "- beta: no clear winner, KalmanNet 1.000 [0.990, 1.010] × DAOF-v1; lower on 1 of 3 seeds" in lines
     assert "- yaw_rate: no clear winner, DAOF-v1 0.998 [0.988, 1.006] × KalmanNet; lower on 2 of 3 seeds" in lines
@@ -71,8 +77,8 @@ def test_experiment2_daof_v2_leads_the_slf_on_five_states():
 
 def _ratios(results: dict, name: str) -> list[list[float]]:
     """The ratio to the reference of every seed of a learned filter ("<name> (seed k)" rows)."""
-    rows = [v for n, v in results["filters"].items() if n.startswith(f"{name} (seed ")]
-    return [v["ratio_to_oracle"] for v in rows]
+    rows = learned_filters(results["filters"])[name].values()
+    return [results["filters"][n]["ratio_to_oracle"] for n in rows]
 
 
 def test_linear_check_numbers_in_the_readme():
@@ -116,8 +122,6 @@ def test_learned_winners_names_the_best_learned_filter_per_state_over_its_seeds(
         "SLF (seed 2)": base * torch.stack([torch.full((40,), 0.85), 1 + 0.1 * torch.randn(40, generator=g)], 1),
         "DAOF-v1 (N=5)": 0.1 * base,  # the window study: not compared
     }
-    from daof.evaluate.summary import learned_winners
-
     lines = learned_winners(_toy_results(per_run))
     a, b = (line for line in lines if line.startswith("- "))
     ratio = ((0.9**2 + 0.8**2) / (1 + 0.85**2)) ** 0.5  # over seeds, pooled: 0.917
@@ -129,8 +133,6 @@ def test_learned_winners_names_the_best_learned_filter_per_state_over_its_seeds(
 
 
 def test_a_filter_trained_on_several_seeds_is_one_row_of_the_summary(tmp_path):
-    from daof.evaluate.summary import Headline, headline_table
-
     g = torch.Generator().manual_seed(1)
     base = 1 + torch.rand(30, 2, generator=g)
     per_run = {"UKF": base, **{f"SLF (seed {k})": base * (0.9 + 0.05 * k) for k in (1, 2, 3)}, "SLF (N=5)": base}

@@ -72,7 +72,7 @@ def _table_rows(filters: dict) -> dict[str, list[str]]:
 
 
 def headline_table(root: Path, headline: Headline) -> list[str]:
-    """The markdown lines of one report's table."""
+    """The markdown lines of one report's table, and under it which learned filter wins each state."""
     results = json.loads((root / headline.report / "results.json").read_text())
     filters, states = results["filters"], results["states"]
     reference = headline.reference or results.get("reference")
@@ -88,7 +88,7 @@ def headline_table(root: Path, headline: Headline) -> list[str]:
         costs = [filters[r]["cost_ms"] for r in rows if filters[r].get("cost_ms") is not None]
         cost = f"{sum(costs) / len(costs):.3f}" if costs else "–"
         lines.append(f"| {label} | " + " | ".join(_ratio_cells(filters, rows, reference, len(states))) + f" | {cost} |")
-    return lines + [""]
+    return lines + [""] + learned_winners(results)
 
 
 def learned_filters(filters: dict) -> dict[str, dict[int | None, str]]:
@@ -140,7 +140,6 @@ def summary_markdown(root: Path, headlines=HEADLINES) -> str:
     lines = [BEGIN, ""]
     for headline in headlines:
         lines += headline_table(root, headline)
-        lines += learned_winners(json.loads((root / headline.report / "results.json").read_text()))
     lines += [
         "Ratios below 1 beat the reference; the interval is a 95 % paired bootstrap over runs "
         "(`daof.evaluate.metrics.paired_rmse_ratio`). A filter trained on k seeds is one row: the RMSE "

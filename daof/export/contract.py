@@ -45,6 +45,13 @@ def _state(s) -> dict:
     return {"names": list(s.state_names), "units": list(s.state_units), "scale": s.error_scale.tolist()}
 
 
+def _envelope(step, files: dict[str, str], source: dict | None, **fields) -> dict:
+    """The sidecar: what the filter is, ``fields`` (its step's own description), the files and their origin."""
+    filt, s = step.filter, step.filter.system
+    head = {"filter": filt.kind, "class": type(filt).__name__, "system": s.name, "scenario": s.scenario}
+    return {**head, **fields, "files": files, "torch": torch.__version__, "source": source or {}}
+
+
 def contract(step: nn.Module, files: dict[str, str], source: dict | None = None) -> dict:
     """The sidecar of ``step`` (plain data): ``files`` maps format -> file name, ``source`` says where it came from.
 
@@ -55,7 +62,7 @@ def contract(step: nn.Module, files: dict[str, str], source: dict | None = None)
     """
     if isinstance(step, KalmanNetStep):
         return _kalmannet_contract(step, files, source)
-    filt, s, layout = step.filter, step.filter.system, step.layout
+    s, layout = step.filter.system, step.layout
     n, width = s.state_dim, layout.width
     gaps = (
         "read as its prediction g(f(x̂_{t−1}, u_{t−1}), u_t)" if step.predict_gaps else "read as its last present value"
@@ -77,23 +84,19 @@ def contract(step: nn.Module, files: dict[str, str], source: dict | None = None)
     if step.closed_loop:
         initial["prev_estimate"] = s.prior.mean.float().tolist()
         carry["prev_estimate"] = "estimate"
-    return {
-        "filter": filt.kind,
-        "class": type(filt).__name__,
-        "system": s.name,
-        "scenario": s.scenario,
-        "window": layout.window,
-        "frame": [list(field) for field in layout.fields],
-        "missing_fill": "prediction" if step.predict_gaps else "hold",
-        "arguments": list(step.arguments),
-        "inputs": inputs,
-        "outputs": outputs,
-        "initial": initial,
-        "carry": carry,
-        "files": files,
-        "torch": torch.__version__,
-        "source": source or {},
-    }
+    return _envelope(
+        step,
+        files,
+        source,
+        window=layout.window,
+        frame=[list(field) for field in layout.fields],
+        missing_fill="prediction" if step.predict_gaps else "hold",
+        arguments=list(step.arguments),
+        inputs=inputs,
+        outputs=outputs,
+        initial=initial,
+        carry=carry,
+    )
 
 
 #: what each of KalmanNet's carried tensors holds (``KalmanNetState``)
@@ -109,7 +112,7 @@ _KALMANNET_MEANING = {
 
 
 def _kalmannet_contract(step: KalmanNetStep, files: dict[str, str], source: dict | None) -> dict:
-    filt, s = step.filter, step.filter.system
+    s = step.filter.system
     start = step.initial_state(1)
     gaps = "adds nothing to the update (no channel present: the step only predicts)"
     carried = {
@@ -118,21 +121,17 @@ def _kalmannet_contract(step: KalmanNetStep, files: dict[str, str], source: dict
     described = {**_signals(s, gaps), **carried}
     outputs = [_tensor("estimate", s.state_dim, "float32", "x̂_t", **_state(s))]
     outputs += [{**carried[name], "name": f"next_{name}", "meaning": f"feed back as {name}"} for name in carried]
-    return {
-        "filter": filt.kind,
-        "class": type(filt).__name__,
-        "system": s.name,
-        "scenario": s.scenario,
-        "missing_fill": "prediction",
-        "arguments": list(step.arguments),
-        "inputs": [described[name] for name in step.input_names],
-        "outputs": outputs,
-        "initial": {name: start[name][0].tolist() for name in carried},
-        "carry": {name: f"next_{name}" for name in carried},
-        "files": files,
-        "torch": torch.__version__,
-        "source": source or {},
-    }
+    return _envelope(
+        step,
+        files,
+        source,
+        missing_fill="prediction",
+        arguments=list(step.arguments),
+        inputs=[described[name] for name in step.input_names],
+        outputs=outputs,
+        initial={name: start[name][0].tolist() for name in carried},
+        carry={name: f"next_{name}" for name in carried},
+    )
 
 
 def write_contract(info: dict, out: str | Path) -> Path:

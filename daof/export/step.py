@@ -26,19 +26,38 @@ def streaming_step(filt) -> nn.Module:
     return KalmanNetStep(filt) if filt.kind == "KalmanNet" else StreamingStep(filt)
 
 
-class StreamingStep(nn.Module):
-    """The streaming step of ``filt`` (a ``LearnedFilter``); ``input_names`` lists its arguments in order."""
+class _FilterStep(nn.Module):
+    """What every exported step shares: the filter frozen in eval mode, and which arguments it takes."""
+
+    #: every argument of ``forward``, in order (subclasses)
+    arguments: tuple[str, ...] = ()
+    closed_loop = True
 
     def __init__(self, filt):
         super().__init__()
         self.filter = filt.eval()
         for p in self.filter.parameters():
             p.requires_grad_(False)
+        self.has_controls = filt.system.control_dim > 0
+
+    @property
+    def input_names(self) -> list[str]:
+        """The arguments this filter's step takes (not None), in order."""
+        unused = ({"control", "prev_control"} if not self.has_controls else set()) | (
+            {"prev_estimate"} if not self.closed_loop else set()
+        )
+        return [name for name in self.arguments if name not in unused]
+
+
+class StreamingStep(_FilterStep):
+    """The streaming step of ``filt`` (a ``LearnedFilter``); ``input_names`` lists its arguments in order."""
+
+    def __init__(self, filt):
+        super().__init__(filt)
         s, layout = filt.system, filt.layout
         self.layout = layout
         self.measured = layout.without("prev_estimate")
         self.closed_loop = layout.closed_loop
-        self.has_controls = s.control_dim > 0
         self.predict_gaps = getattr(filt, "missing_fill", "hold") == "prediction"
         with torch.no_grad():
             layers = filt._inference_layers()
@@ -64,14 +83,6 @@ class StreamingStep(nn.Module):
     def _keep(self, name: str, tensor: torch.Tensor) -> str:
         self.register_buffer(name, tensor.detach().clone())
         return name
-
-    @property
-    def input_names(self) -> list[str]:
-        """The arguments this filter's step takes (not None), in order."""
-        unused = ({"control", "prev_control"} if not self.has_controls else set()) | (
-            {"prev_estimate"} if not self.closed_loop else set()
-        )
-        return [name for name in self.arguments if name not in unused]
 
     output_names = ["estimate", "next_window"]
 
@@ -120,7 +131,7 @@ class StreamingStep(nn.Module):
 KALMANNET_STATE = tuple(f"state_{k}" for k in STATE_KEYS)
 
 
-class KalmanNetStep(nn.Module):
+class KalmanNetStep(_FilterStep):
     """KalmanNet's step for export: (y_t, u_t, u_{t−1}, its recurrent state) -> (x̂_t, the next state).
 
     The filter's own ``step`` (the model's f and g, the gain network, the gaps' rule), with the
@@ -130,22 +141,11 @@ class KalmanNetStep(nn.Module):
 
     arguments = ("measurement", "control", "prev_control", *KALMANNET_STATE)
     output_names = ["estimate", *(f"next_{k}" for k in KALMANNET_STATE)]
-    closed_loop = True
 
     def __init__(self, filt):
-        super().__init__()
-        self.filter = filt.eval()
-        for p in self.filter.parameters():
-            p.requires_grad_(False)
-        s = filt.system
-        self.has_controls = s.control_dim > 0
+        super().__init__(filt)
         with torch.no_grad():  # build the model's constant caches outside tracing
             self.filter.initial_state(1)
-
-    @property
-    def input_names(self) -> list[str]:
-        unused = {"control", "prev_control"} if not self.has_controls else set()
-        return [name for name in self.arguments if name not in unused]
 
     def forward(
         self,
