@@ -1,11 +1,12 @@
 """The 28-state right-hand side ẋ = f(x, inputs) of the 14-DOF car (spec §2, §5), batched.
 
 State layout (§2): [X, Y, z_s, φ, θ, ψ, z_u(4), ρ(4), u, v, w, φ̇, θ̇, r, ż_u(4), ω(4)]; coordinates
-0–13, speeds 14–27, so ẋ[:14] is (Ẋ, Ẏ, speeds...). Per-corner quantities are [runs, 4] tensors
-(FL, FR, RL, RR); there is no Python loop over corners.
+0–13, speeds 14–27, so ẋ[:14] is (Ẋ, Ẏ, speeds...). ``rhs_t`` computes in state-major layout
+(states, and per-corner quantities (FL, FR, RL, RR), on the first axis, runs on the last);
+``rhs`` is its batch-major face. There is no Python loop over corners.
 
-Inputs held over an RK4 step: δ_sw [runs], T_d [runs, 4], T_b [runs, 4] and the §0 disturbance
-(lateral force F_d, yaw moment M_d) at P [runs, 2]. The disturbance is added to ΣF_y and M_z only;
+Inputs held over an RK4 step: δ_sw, the drive and brake torques T_d, T_b per corner and the §0
+disturbance (lateral force F_d, yaw moment M_d) at P. The disturbance is added to ΣF_y and M_z only;
 it is a force on the body, not a tyre force, so it does not pass through the roll centres (F_geo).
 """
 
@@ -17,7 +18,7 @@ import torch
 from daof.envs.vehicle14dof.params import Constants
 from daof.envs.vehicle14dof.tyre import magic_formula
 
-__all__ = ["Aux", "rhs", "N_STATE", "IDX"]
+__all__ = ["Aux", "rhs", "rhs_t", "N_STATE", "IDX"]
 
 N_STATE = 28
 
@@ -49,34 +50,53 @@ class Aux(NamedTuple):
 
 
 def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool = False):
-    """ẋ for x [runs, 28]; returns ẋ, or (ẋ, Aux) with ``with_aux``.
+    """ẋ for x [runs, 28] (T_d, T_b [runs, 4], dist [runs, 2]); returns ẋ, or (ẋ, Aux) with ``with_aux``.
 
-    Scalars come from ``c.s`` as 0-dim tensors: multiplying a float32 tensor by a Python float
-    costs an extra dtype conversion per op, which dominates at small batch.
+    The batch-major face of ``rhs_t``: transposes in and out (the Aux corner fields too).
     """
-    s = c.s
-    z_u, u, v, w = x[:, 6:10], x[:, 14], x[:, 15], x[:, 16]
-    phi_d, theta_d, r = x[:, 17], x[:, 18], x[:, 19]
-    z_u_d, omega = x[:, 20:24], x[:, 24:28]
-    # one cos and one sin for (φ, θ, ψ, δ) with δ = δ_sw / i_s (§5.1)
-    angles = torch.cat([x[:, 3:6], (delta_sw * s.inv_i_s)[:, None]], -1)
-    cphi, cth, cpsi, cdelta = torch.cos(angles).unbind(-1)
-    sphi, sth, spsi, sdelta = torch.sin(angles).unbind(-1)
+    out = rhs_t(x.T, delta_sw, T_d.T, T_b.T, dist.T, c, with_aux)
+    if not with_aux:
+        return out.T
+    xdot, aux = out
+    return xdot.T, Aux(*(a.T if a.ndim == 2 else a for a in aux))
 
-    # §5.2 suspension: z_b,i = z_s − x_i sθ + y_i cθ sφ and its rate, as (·) @ [1; −x_i; y_i]
-    zb = torch.stack([x[:, 2], sth, cth * sphi], -1) @ c.corner_map
-    zb_d = torch.stack([w, cth * theta_d, cth * cphi * phi_d - sth * sphi * theta_d], -1) @ c.corner_map
-    F_s_dyn = (z_u - zb) @ c.K_susp + c.c_s * (z_u_d - zb_d)  # F_s − F_s0 (springs, bars, dampers)
-    F_s = c.F_s0 + F_s_dyn
+
+def rhs_t(xt: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool = False):
+    """ẋ in state-major layout: xt [28, runs], T_d, T_b [4, runs], dist [2, runs] -> [28, runs].
+
+    State-major keeps the runs on the fastest axis of every tensor, per-corner ones [4, runs]
+    included, so a compiled step vectorises over runs (batch-major [runs, 4] gives its vector
+    loops 4 useful lanes of 16). Scalars come from ``c.s`` as 0-dim tensors and per-corner
+    constants from ``c.col`` as columns: multiplying a float32 tensor by a Python float costs an
+    extra dtype conversion per op, which dominates at small batch.
+    """
+    s, k = c.s, c.col
+    z_u, u, v, w = xt[6:10], xt[14], xt[15], xt[16]
+    phi_d, theta_d, r = xt[17], xt[18], xt[19]
+    z_u_d, omega = xt[20:24], xt[24:28]
+    # one cos and one sin for (φ, θ, ψ, δ) with δ = δ_sw / i_s (§5.1)
+    angles = torch.cat([xt[3:6], (delta_sw * s.inv_i_s)[None]], 0)
+    cphi, cth, cpsi, cdelta = torch.cos(angles).unbind(0)
+    sphi, sth, spsi, sdelta = torch.sin(angles).unbind(0)
+
+    # §5.2 suspension: z_b,i = z_s − x_i sθ + y_i cθ sφ and its rate
+    zb = xt[2] - k.x_i * sth + k.y_i * (cth * sphi)
+    zb_d = w - k.x_i * (cth * theta_d) + k.y_i * (cth * cphi * phi_d - sth * sphi * theta_d)
+    dz = z_u - zb
+    # F_s − F_s0: springs, anti-roll bars (against the axle's other corner) and dampers. Written
+    # out rather than as a matrix product so that mirror-image corners round alike (a straight run
+    # stays exactly straight) and a compiled step fuses without a matmul call.
+    F_s_dyn = k.k_s * dz + k.k_arb * (dz - dz.view(2, 2, -1).flip(1).reshape(dz.shape)) + k.c_s * (z_u_d - zb_d)
+    F_s = k.F_s0 + F_s_dyn
 
     # §5.3 normal loads
-    F_z = torch.clamp(c.F_z0 - s.k_t * z_u - s.c_t * z_u_d, min=0.0)
+    F_z = torch.clamp(k.F_z0 - s.k_t * z_u - s.c_t * z_u_d, min=0.0)
 
     # §5.4 contact-patch velocities (v_x,i = u − r y_i, v_y,i = v + r x_i) and slips; δ_i = (δ, δ, 0, 0)
-    vel = x[:, 14:20] @ c.velocity_map
-    vx, vy = vel[:, :4], vel[:, 4:]
-    cd = 1.0 + (cdelta - 1.0)[:, None] * c.front
-    sd = sdelta[:, None] * c.front
+    vx = u - k.y_i * r
+    vy = v + k.x_i * r
+    cd = 1.0 + (cdelta - 1.0) * k.front
+    sd = sdelta * k.front
     vxw = vx * cd + vy * sd
     vyw = vy * cd - vx * sd
     inv_den = 1.0 / torch.clamp(vxw.abs(), min=c.p.v_eps)
@@ -88,13 +108,13 @@ def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool 
     F_x = F_xw * cd - F_yw * sd
     F_y = F_xw * sd + F_yw * cd
 
-    # §5.6 force and moment sums (corner sums as matrix-vector products: cheaper than .sum(-1))
+    # §5.6 force and moment sums over the corners
     F_a = -s.aero * u * u.abs()
-    SFx = F_x @ c.ones4 + F_a
-    SFy = F_y @ c.ones4 + dist[:, 0]
-    M_z = F_y @ c.x_i - F_x @ c.y_i + dist[:, 1]
-    M_xs = F_s @ c.y_i
-    M_ys = -(F_s @ c.x_i)
+    SFx = F_x.sum(0) + F_a
+    SFy = F_y.sum(0) + dist[0]
+    M_z = (k.x_i * F_y).sum(0) - (k.y_i * F_x).sum(0) + dist[1]
+    M_xs = (k.y_i * F_s).sum(0)
+    M_ys = -(k.x_i * F_s).sum(0)
 
     # §5.7 longitudinal/pitch and lateral/roll 2×2 solves, yaw, heave
     m = s.m
@@ -111,14 +131,14 @@ def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool 
     a_y = (C2 * SFy - B2 * b2) / det2
     phi_dd = (m * b2 - B2 * SFy) / det2
     r_d = M_z * s.inv_I_zz
-    w_d = (F_s_dyn @ c.ones4) * s.inv_m_s
+    w_d = F_s_dyn.sum(0) * s.inv_m_s
 
     # §5.8 direct load transfer F_geo and unsprung vertical dynamics
-    F_y_axle = F_y @ c.axle_sum  # [runs, (f, r)]
-    m_u_ay = c.m_u_axle * a_y[:, None]  # m_u,j a_y
-    G = (c.h_rc * (F_y_axle - 2.0 * m_u_ay) + c.two_h_u * m_u_ay) / c.track
-    F_geo = G @ c.geo_G + (s.X_g_coef * a_x)[:, None] * c.geo_X
-    z_u_dd = ((F_z - c.F_z0) - F_s_dyn - F_geo) * c.inv_m_u
+    F_y_axle = F_y.view(2, 2, -1).sum(1)  # [(f, r), runs]
+    m_u_ay = k.m_u_axle * a_y  # m_u,j a_y
+    G = (k.h_rc * (F_y_axle - 2.0 * m_u_ay) + c.two_h_u * m_u_ay) / k.track
+    F_geo = torch.stack([-G[0], G[0], -G[1], G[1]]) + k.geo_X * (s.X_g_coef * a_x)
+    z_u_dd = ((F_z - k.F_z0) - F_s_dyn - F_geo) * k.inv_m_u
 
     # §5.9 wheel spin
     sgn = torch.tanh(omega * s.inv_omega_eps)
@@ -127,14 +147,14 @@ def rhs(x: torch.Tensor, delta_sw, T_d, T_b, dist, c: Constants, with_aux: bool 
     # §5.10 kinematics
     xdot = torch.cat(
         [
-            torch.stack([u * cpsi - v * spsi, u * spsi + v * cpsi, w, phi_d, theta_d, r], -1),
+            torch.stack([u * cpsi - v * spsi, u * spsi + v * cpsi, w, phi_d, theta_d, r]),
             z_u_d,
             omega,
-            torch.stack([a_x + r * v, a_y - r * u, w_d, phi_dd, theta_dd, r_d], -1),
+            torch.stack([a_x + r * v, a_y - r * u, w_d, phi_dd, theta_dd, r_d]),
             z_u_dd,
             omega_d,
         ],
-        -1,
+        0,
     )
     if not with_aux:
         return xdot

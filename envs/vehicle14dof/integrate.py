@@ -8,22 +8,23 @@ App. A reference. One filter step Δt = 20 ms is n = Δt/h = 20 RK4 steps.
 from __future__ import annotations
 
 import torch
-from daof.envs.vehicle14dof.dynamics import rhs
+from daof.envs.vehicle14dof.dynamics import rhs, rhs_t
 from daof.envs.vehicle14dof.manoeuvre import speed_holder, steering
 from daof.envs.vehicle14dof.params import Constants
 
 __all__ = ["rk4_step", "drive_inputs", "make_substep", "integrate_substeps"]
 
 
-def rk4_step(x, h: float, delta_sw, T_d, T_b, dist, c: Constants) -> torch.Tensor:
+def rk4_step(x, h: float, delta_sw, T_d, T_b, dist, c: Constants, f=rhs) -> torch.Tensor:
     """Classical RK4: x + h/6 (k1 + 2k2 + 2k3 + k4) with inputs held over the step.
 
-    ``torch.add(..., alpha=)`` fuses the scalar multiply into the add (one op, no scalar tensor).
+    ``f`` is ``rhs`` (x [runs, 28], the default) or ``rhs_t`` (state-major x [28, runs], inputs
+    likewise transposed). ``torch.add(..., alpha=)`` fuses the scalar multiply into the add.
     """
-    k1 = rhs(x, delta_sw, T_d, T_b, dist, c)
-    k2 = rhs(torch.add(x, k1, alpha=0.5 * h), delta_sw, T_d, T_b, dist, c)
-    k3 = rhs(torch.add(x, k2, alpha=0.5 * h), delta_sw, T_d, T_b, dist, c)
-    k4 = rhs(torch.add(x, k3, alpha=h), delta_sw, T_d, T_b, dist, c)
+    k1 = f(x, delta_sw, T_d, T_b, dist, c)
+    k2 = f(torch.add(x, k1, alpha=0.5 * h), delta_sw, T_d, T_b, dist, c)
+    k3 = f(torch.add(x, k2, alpha=0.5 * h), delta_sw, T_d, T_b, dist, c)
+    k4 = f(torch.add(x, k3, alpha=h), delta_sw, T_d, T_b, dist, c)
     incr = (k1 + k4).add_(k2, alpha=2.0).add_(k3, alpha=2.0)
     return torch.add(x, incr, alpha=h / 6.0)
 
@@ -35,17 +36,18 @@ def drive_inputs(x, integ, time, man, c: Constants, h: float):
 
 
 def make_substep(c: Constants, h: float, compile: bool = False):
-    """One RK4 step with the driver and steering evaluated at its start (plain tensors in and out).
+    """One RK4 step with the driver and steering evaluated at its start, in state-major layout.
 
-    ``compile=True`` wraps it in ``torch.compile`` (inductor, one fused kernel per step): measured
-    1.7× (batch 1024) to 5.6× (batch 1) faster than eager, after a first compile of about 80 s per
-    batch size on this machine (docs/benchmarks/veh14dof.md), so it is opt-in.
+    Takes and returns xt [28, runs] (and the disturbance as [2, runs]); plain tensors in and out.
+    ``compile=True`` wraps it in ``torch.compile`` (inductor, fused kernels vectorised over runs):
+    faster than eager at every batch after a first compile per batch size
+    (docs/benchmarks/veh14dof.md).
     """
 
-    def substep(x, integ, time, v_ref, amplitude, t1, t2, dist):
-        T_d, T_b, integ = speed_holder(x[:, 14], integ, v_ref, c, h)
+    def substep(xt, integ, time, v_ref, amplitude, t1, t2, dist_t):
+        T_d, T_b, integ = speed_holder(xt[14], integ, v_ref, c, h)
         man = {"amplitude": amplitude, "t1": t1, "t2": t2}
-        return rk4_step(x, h, steering(time, man), T_d, T_b, dist, c), integ
+        return rk4_step(xt, h, steering(time, man), T_d.T, T_b.T, dist_t, c, rhs_t), integ
 
     return torch.compile(substep, dynamic=False) if compile else substep
 
@@ -54,10 +56,12 @@ def integrate_substeps(x, integ, time0, n: int, man, dist, c: Constants, h: floa
     """Advance ``n`` RK4 steps of size ``h`` from per-run time ``time0`` [runs] under the manoeuvre.
 
     ``dist`` [runs, 2] (lateral force, yaw moment at P) is held over all ``n`` steps; ``substep``
-    is a ``make_substep`` function (default: eager). Returns (x, driver integral).
+    is a ``make_substep`` function (default: eager). x [runs, 28] is integrated in state-major
+    layout (one transpose each way per call). Returns (x, driver integral).
     """
     substep = substep or make_substep(c, h)
     v_ref, amplitude, t1, t2 = man["v_ref"], man["amplitude"], man["t1"], man["t2"]
+    xt, dist_t = x.T.contiguous(), dist.T.contiguous()
     for j in range(n):
-        x, integ = substep(x, integ, time0 + j * h, v_ref, amplitude, t1, t2, dist)
-    return x, integ
+        xt, integ = substep(xt, integ, time0 + j * h, v_ref, amplitude, t1, t2, dist_t)
+    return xt.T.contiguous(), integ

@@ -171,39 +171,35 @@ class Constants:
         self.F_s0 = vec(Fs0)
         self.F_z0 = vec([f + mu * p.g for f, mu in zip(Fs0, (p.m_uf, p.m_uf, p.m_ur, p.m_ur))])
         self.c_s = vec([p.c_sf, p.c_sf, p.c_sr, p.c_sr])
-        # F_s = F_s0 + Δ·K + c_s Δ̇ with K = diag(k_s) + anti-roll-bar coupling (§5.2)
-        kf, kr = self.k_arbf, self.k_arbr
-        self.K_susp = vec(
-            [
-                [p.k_sf + kf, -kf, 0.0, 0.0],
-                [-kf, p.k_sf + kf, 0.0, 0.0],
-                [0.0, 0.0, p.k_sr + kr, -kr],
-                [0.0, 0.0, -kr, p.k_sr + kr],
-            ]
-        )
         self.front = vec([1.0, 1.0, 0.0, 0.0])
-        self.ones4 = vec([1.0, 1.0, 1.0, 1.0])
-        self.axle_sum = vec([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]])
         self.drive_split = vec([0.0, 0.0, 0.5, 0.5])  # RWD, open differential
         bf = p.brake_front
         self.brake_split_vec = vec([bf / 2, bf / 2, (1 - bf) / 2, (1 - bf) / 2])
         self.h_rc = vec([p.h_rcf, p.h_rcr])
         self.m_u_axle = vec([p.m_uf, p.m_ur])
         self.track = vec([p.t_f, p.t_r])
-        # F_geo = G @ geo_G + X_g ⊗ geo_X (§5.8)
-        self.geo_G = vec([[-1.0, 1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 1.0]])
-        self.geo_X = vec([-1.0, -1.0, 1.0, 1.0])
+        self.geo_X = vec([-1.0, -1.0, 1.0, 1.0])  # F_geo = (−G_f, G_f, −G_r, G_r) + X_g geo_X (§5.8)
         self.X_g_coef = (2 * p.m_uf + 2 * p.m_ur) * p.h_u / (2 * L)
         self.Sigma_muhu = (2 * p.m_uf + 2 * p.m_ur) * p.h_u
-        # z_b,i = [z_s, sθ, cθ sφ] @ corner_map; [v_x,i | v_y,i] = [u, v, w, φ̇, θ̇, r] @ velocity_map
-        self.corner_map = torch.stack([torch.ones_like(self.x_i), -self.x_i, self.y_i])
-        self.velocity_map = torch.zeros(6, 8, dtype=dtype, device=self.device)
-        self.velocity_map[0, :4] = 1.0
-        self.velocity_map[1, 4:] = 1.0
-        self.velocity_map[5, :4] = -self.y_i
-        self.velocity_map[5, 4:] = self.x_i
         self.inv_m_u = 1.0 / self.m_u
         self.two_h_u = vec(2 * p.h_u)
+        #: per-corner (and per-axle) constants as columns [4, 1] ([2, 1]), for ``rhs_t``
+        self.col = SimpleNamespace(
+            F_s0=self.F_s0[:, None],
+            F_z0=self.F_z0[:, None],
+            c_s=self.c_s[:, None],
+            front=self.front[:, None],
+            inv_m_u=self.inv_m_u[:, None],
+            geo_X=self.geo_X[:, None],
+            h_rc=self.h_rc[:, None],
+            m_u_axle=self.m_u_axle[:, None],
+            track=self.track[:, None],
+            x_i=self.x_i[:, None],
+            y_i=self.y_i[:, None],
+            k_s=vec([p.k_sf, p.k_sf, p.k_sr, p.k_sr])[:, None],
+            # F_s = F_s0 + k_s Δ + k_arb (Δ − Δ of the axle's other corner) + c_s Δ̇ (§5.2)
+            k_arb=vec([self.k_arbf, self.k_arbf, self.k_arbr, self.k_arbr])[:, None],
+        )
         scalars = {f.name: getattr(p, f.name) for f in fields(p) if isinstance(getattr(p, f.name), float)}
         scalars.update(
             m=self.m,
