@@ -543,7 +543,7 @@ def _figures(study, out: Path, spec: ReportSpec, units, scale, paired: dict | No
             }
             refs = {name: [v * k[j] for j, v in enumerate(values)] for name, values in refs.items()}
         figs["learning curves"] = figures.plot_learning_curves(
-            curves, s.state_names, out / "learning_curves.png", refs, units=units if scale is not None else None
+            curves, s.state_names, out / "learning_curves.png", refs, units=units
         )
     if spec.window_study:
         rows = spec.window_study.rows
