@@ -1,0 +1,86 @@
+"""How well calibrated is each filter's error std? NEES and ±2σ coverage per state on fresh evaluation data.
+
+    python -m daof.train.uncertainty RUNS/daof-v1-N20-s1        # first, a head beside each learned filter
+    python diagnostics/calibration.py veh2dof RUNS OUT           # EKF, UKF, PF and every RUNS/*-N20-s1/best.pt
+    python diagnostics/calibration.py linear RUNS OUT --runs 100 --steps 500 --seed 20261122
+
+Runs the study (``daof.evaluate.run_study``, no cost timing) of the system's classical filters (veh2dof: EKF,
+UKF, PF with 1000 particles; linear: KF, KF-stationary, PF) and every learned filter whose run directory
+``RUNS/<kind>-N<window>-s<seed>`` holds a ``best.pt`` (with its uncertainty head where fitted), writes the
+report with its calibration section and figure to OUT, and prints the calibration table (docs/uncertainty.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import torch
+from daof.envs.registry import make_system
+
+from daof.evaluate import run_study
+from daof.evaluate.report import ReportSpec, write_report
+from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter, StationaryKalmanFilter
+from daof.filters.learned import load_filter
+
+CLASSICAL = {
+    "veh2dof": lambda s: {"EKF": EKF(s), "UKF": UKF(s), "PF": ParticleFilter(s, 1000, seed=1)},
+    "linear": lambda s: {
+        "KF": KalmanFilter(s),
+        "KF-stationary": StationaryKalmanFilter(s),
+        "PF": ParticleFilter(s, 1000, seed=1),
+    },
+}
+REFERENCE = {"veh2dof": "UKF", "linear": "KF"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("system", choices=sorted(CLASSICAL))
+    parser.add_argument("runs_root", type=Path, help="directory of the learned filters' run directories")
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--steps", type=int, default=500)
+    parser.add_argument("--seed", type=int, default=20261122)
+    parser.add_argument("--pattern", default="*-N20-s1", help="which run directories (glob)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    system = make_system(args.system)
+    filters = CLASSICAL[args.system](system)
+    for run in sorted(args.runs_root.glob(args.pattern)):
+        if (run / "best.pt").is_file():
+            filt = load_filter(run / "best.pt", system)
+            filters[filt.name] = filt
+    start = time.perf_counter()
+    study = run_study(
+        system,
+        filters,
+        args.runs,
+        args.steps,
+        args.seed,
+        measure_cost=False,
+        cache_dir=args.out / "study",
+        reference=REFERENCE[args.system],
+    )
+    command = f"python diagnostics/calibration.py {args.system} {args.runs_root} {args.out}"
+    command += f" --runs {args.runs} --steps {args.steps} --seed {args.seed} --pattern '{args.pattern}'"
+    meta = {"command": command, "wall_s": round(time.perf_counter() - start, 1)}
+    spec = ReportSpec(meta=meta)
+    write_report(study, args.out, title=f"Calibration of the error std: {args.system}", profile="paper", spec=spec)
+    names = system.state_names
+    print(f"\n| filter | σ from | NEES ({' / '.join(names)}) | ±2σ coverage [%] ({' / '.join(names)}) | RMSE |")
+    print("|---|---|---|---|---|")
+    for name, r in study.results.items():
+        if r.nees is None:
+            print(f"| {name} | – | – | – | {' / '.join(f'{v:.4g}' for v in r.rmse)} |")
+            continue
+        nees = " / ".join(f"{v:.3f}" for v in r.nees)
+        cover = " / ".join(f"{100 * v:.1f}" for v in r.coverage_2sigma)
+        print(f"| {name} | {r.std_source} | {nees} | {cover} | {' / '.join(f'{v:.4g}' for v in r.rmse)} |")
+    print(f"\nreport: {args.out / 'report.md'}")
+
+
+if __name__ == "__main__":
+    main()
