@@ -6,13 +6,16 @@
 
 Runs the study (``daof.evaluate.run_study``, no cost timing) of the system's classical filters (veh2dof: EKF,
 UKF, PF with 1000 particles; linear: KF, KF-stationary, PF) and every learned filter whose run directory
-``RUNS/<kind>-N<window>-s<seed>`` holds a ``best.pt`` (with its uncertainty head where fitted), writes the
-report with its calibration section and figure to OUT, and prints the calibration table (docs/uncertainty.md).
+``RUNS/<kind>-N<window>-s<seed>`` (``--pattern``) holds a ``best.pt`` (with its uncertainty head where fitted;
+a row per training seed where several match), caches each filter's result in OUT/study under a digest of its
+checkpoint and head, writes the report with its calibration section and figure to OUT, and prints the
+calibration table (docs/uncertainty.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import time
 from pathlib import Path
 
@@ -21,8 +24,10 @@ from daof.envs.registry import make_system
 
 from daof.evaluate import run_study
 from daof.evaluate.report import ReportSpec, write_report
+from daof.experiments.runner import checkpoint_fingerprint, classical_fingerprint
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter, StationaryKalmanFilter
 from daof.filters.learned import load_filter
+from daof.filters.learned.uncertainty import head_path
 
 CLASSICAL = {
     "veh2dof": lambda s: {"EKF": EKF(s), "UKF": UKF(s), "PF": ParticleFilter(s, 1000, seed=1)},
@@ -49,10 +54,16 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     system = make_system(args.system)
     filters = CLASSICAL[args.system](system)
-    for run in sorted(args.runs_root.glob(args.pattern)):
-        if (run / "best.pt").is_file():
-            filt = load_filter(run / "best.pt", system)
-            filters[filt.name] = filt
+    versions = {name: classical_fingerprint(filt, system) for name, filt in filters.items()}
+    runs = [run for run in sorted(args.runs_root.glob(args.pattern)) if (run / "best.pt").is_file()]
+    seed_of = {run: re.search(r"-s(\d+)$", run.name)[1] for run in runs}
+    for run in runs:
+        filt = load_filter(run / "best.pt", system)
+        # a row per training seed where there are several ("DAOF-v1 (seed 2)", the reports' rows)
+        name = filt.name if len(set(seed_of.values())) == 1 else f"{filt.name} (seed {seed_of[run]})"
+        filters[name] = filt
+        files = [run / "best.pt", head_path(run / "best.pt")]
+        versions[name] = checkpoint_fingerprint([f for f in files if f.is_file()])  # a refitted head runs again
     start = time.perf_counter()
     study = run_study(
         system,
@@ -63,6 +74,7 @@ def main() -> None:
         measure_cost=False,
         cache_dir=args.out / "study",
         reference=REFERENCE[args.system],
+        versions=versions,
     )
     command = f"python diagnostics/calibration.py {args.system} {args.runs_root} {args.out}"
     command += f" --runs {args.runs} --steps {args.steps} --seed {args.seed} --pattern '{args.pattern}'"

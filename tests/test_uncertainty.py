@@ -95,6 +95,7 @@ def test_a_filter_without_std_returns_none(lin):
 
 
 def _tiny(kind, system="linear"):
+    torch.manual_seed(0)  # the untrained filter's weights
     f = make_filter(kind, system=system, window=4, num_cells=16)
     f.fit_normalizer(runs=4, steps=50)
     return f.eval().requires_grad_(False)
@@ -103,10 +104,11 @@ def _tiny(kind, system="linear"):
 @pytest.mark.parametrize("kind", ["SLF", "DAOF-v1", "DAOF-v2", "KalmanNet"])
 def test_a_tiny_learned_filters_head_trains_and_gives_positive_std(kind, tmp_path):
     f = _tiny(kind)
-    settings = HeadSettings(runs=16, steps=60, epochs=4, batch_size=256, num_cells=16)
+    settings = HeadSettings(runs=32, steps=100, epochs=10, batch_size=128, lr=1e-2, num_cells=16)
     head, record = fit_head(f, settings, seed=5, log=lambda *_: None)
-    # the head learnt something a constant σ per state does not hold (the start-up's wide errors)
-    assert min(record["held_out_nll"]) < record["held_out_nll_constant"]
+    # the head learnt what a constant σ per state does not hold (the start-up's wide errors): by 0.26-1.3 nats
+    assert min(record["held_out_nll"]) < record["held_out_nll_constant"] - 0.1
+    assert fit_head(f, settings, seed=5, log=lambda *_: None)[1]["held_out_nll"] == record["held_out_nll"]
     f.attach_uncertainty(head)
     data = f.system.simulate(3, 30, 1)
     estimates, std = f.run_with_std(data)

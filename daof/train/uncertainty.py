@@ -83,8 +83,18 @@ def gaussian_nll(log_variance: torch.Tensor, errors: torch.Tensor) -> torch.Tens
 
 
 def fit_head(filt: LearnedFilter, settings: HeadSettings, seed: int, log=print) -> tuple[UncertaintyHead, dict]:
-    """Fit a head to the frozen ``filt`` (module docstring) -> (head, record: held-out NLL, NEES, coverage)."""
+    """Fit a head to the frozen ``filt`` (module docstring) -> (head, record: held-out NLL, NEES, coverage).
+
+    Deterministic: the head's initial weights and the batches' order come from ``seed`` too (the global
+    random state is left as it was).
+    """
     settings.check()
+    with torch.random.fork_rng():
+        torch.manual_seed(seed)
+        return _fit(filt, settings, seed, log)
+
+
+def _fit(filt: LearnedFilter, settings: HeadSettings, seed: int, log) -> tuple[UncertaintyHead, dict]:
     start = time.perf_counter()
     features, errors = simulate_features(filt, settings.runs, settings.steps, check_seed(seed))
     finite = torch.isfinite(errors).all(-1).all(-1) & torch.isfinite(features).all(-1).all(-1)
