@@ -9,7 +9,8 @@ UKF, PF with 1000 particles; linear: KF, KF-stationary, PF) and every learned fi
 ``RUNS/<kind>-N<window>-s<seed>`` (``--pattern``) holds a ``best.pt`` (with its uncertainty head where fitted;
 a row per training seed where several match), caches each filter's result in OUT/study under a digest of its
 checkpoint and head, writes the report with its calibration section and figure to OUT, and prints the
-calibration table (docs/uncertainty.md).
+calibration table; with ``--split S`` (default 50) also the start-up t ≤ S and the rest apart, and beside
+each learned filter a constant σ per state (its head's offset), which shows what the head adds.
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ import torch
 from daof.envs.registry import make_system
 
 from daof.evaluate import run_study
+from daof.evaluate.metrics import calibration
 from daof.evaluate.report import ReportSpec, write_report
 from daof.experiments.runner import checkpoint_fingerprint, classical_fingerprint
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter, StationaryKalmanFilter
-from daof.filters.learned import load_filter
+from daof.filters.learned import LearnedFilter, load_filter
 from daof.filters.learned.uncertainty import head_path
 
 CLASSICAL = {
@@ -50,6 +52,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=20261122)
     parser.add_argument("--pattern", default="*-N20-s1", help="which run directories (glob)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--split", type=int, default=50, help="also the start-up t ≤ SPLIT and after it (0: not)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     system = make_system(args.system)
@@ -91,7 +94,41 @@ def main() -> None:
         nees = " / ".join(f"{v:.3f}" for v in r.nees)
         cover = " / ".join(f"{100 * v:.1f}" for v in r.coverage_2sigma)
         print(f"| {name} | {r.std_source} | {nees} | {cover} | {' / '.join(f'{v:.4g}' for v in r.rmse)} |")
+    if args.split:
+        print(split_table(study, filters, args.split))
     print(f"\nreport: {args.out / 'report.md'}")
+
+
+def split_table(study, filters: dict, split: int) -> str:
+    """NEES and ±2σ coverage per state over the start-up (t ≤ split) and after it, for every filter with a std;
+    for a learned filter also those of a constant σ per state, its head's offset (the RMS error on the head's
+    training data): what the head adds beyond the right average size."""
+    truth = study.data["state"]
+    parts = {f"t ≤ {split}": slice(0, split), f"t > {split}": slice(split, None)}
+    head = [f"{k} {part}" for k in ("NEES", "±2σ [%]") for part in parts]
+    lines = ["", f"| filter | σ | {' | '.join(head)} | NEES all | ±2σ [%] all |", "|---|---|" + "---|" * 6]
+
+    def row(name, what, estimates, std):
+        c = {part: calibration(estimates[:, sl], truth[:, sl], std[:, sl]) for part, sl in parts.items()}
+        every = calibration(estimates, truth, std)
+        cells = [" / ".join(f"{v:.3f}" for v in c[part]["nees"]) for part in parts]
+        cells += [" / ".join(f"{100 * v:.1f}" for v in c[part]["coverage"]) for part in parts]
+        cells += [
+            " / ".join(f"{v:.3f}" for v in every["nees"]),
+            " / ".join(f"{100 * v:.1f}" for v in every["coverage"]),
+        ]
+        return f"| {name} | {what} | " + " | ".join(cells) + " |"
+
+    for name, filt in filters.items():
+        if filt.std_source is None:
+            continue
+        estimates, std = filt.run_with_std(study.data)
+        estimates, std = estimates.cpu(), std.cpu()
+        lines.append(row(name, filt.std_source, estimates, std))
+        if isinstance(filt, LearnedFilter):
+            constant = (0.5 * filt.uncertainty.log_variance_offset).exp().expand_as(std)
+            lines.append(row(name, "constant σ (head's offset)", estimates, constant))
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
