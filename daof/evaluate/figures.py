@@ -1,4 +1,5 @@
-"""The study's figures (PNG): one run's states and errors, per-run RMSE, learning curves, windows, scenarios.
+"""The study's figures (PNG): one run's states and errors, per-run RMSE, calibration, learning curves, windows,
+scenarios.
 
 Every figure is a grid of at most three panels a row with one legend below it (never on the data);
 every series keeps one colour and line style across the figures of a report (``series_styles``:
@@ -25,6 +26,7 @@ __all__ = [
     "layout_problems",
     "plot_one_run",
     "plot_one_run_state",
+    "plot_calibration",
     "plot_per_run_boxes",
     "plot_learning_curves",
     "plot_scenario_rmse",
@@ -333,4 +335,54 @@ def plot_scenario_rmse(rmse: dict[str, dict[str, list[float]]], state_names, uni
         ax.set_ylabel(f"RMSE {state} [{unit}]")
         ax.grid(alpha=0.3, axis="y")
     _legend_below(fig, axes)
+    return _save(fig, path)
+
+
+#: markers of the calibration figure's series, in order (a filter's colour and line style from ``series_styles``)
+MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*", "<", ">", "h", "p")
+
+
+def plot_calibration(study, path: Path, coverage_band=(0.93, 0.97), nees_band=(0.8, 1.25)) -> Path:
+    """Per state (x axis), every filter with an error std: its ±2σ coverage against the Gaussian 95.45 %, and
+    its mean NEES on a log axis against 1; the bands shaded are the targets (``coverage_band``, ``nees_band``)."""
+    from daof.evaluate.metrics import GAUSSIAN_COVERAGE
+
+    s = study.system
+    names = [n for n, r in study.results.items() if r.nees is not None]
+    if not names:
+        raise ValueError("no filter of the study gives an error std: nothing to plot")
+    styles = series_styles(names)
+    title = f"{s.name} ({s.scenario}): calibration of the error std, {study.runs} runs × {study.steps} steps"
+    fig, (cover, nees) = _grid(2, title)
+    width = 0.7 / len(names)
+    states = range(s.state_dim)
+    for k, name in enumerate(names):
+        r, style = study.results[name], styles[name]
+        xs = [j + (k - (len(names) - 1) / 2) * width for j in states]
+        hollow = "none" if not is_learned(name) else style["color"]
+        marker = {"marker": MARKERS[k % len(MARKERS)], "color": style["color"], "mfc": hollow, "ls": "none"}
+        cover.plot(xs, [100 * v for v in r.coverage_2sigma], label=name, ms=7, **marker)
+        nees.plot(xs, r.nees, label=name, ms=7, **marker)
+    band = f"target band ({100 * coverage_band[0]:g}–{100 * coverage_band[1]:g} % / {nees_band[0]:g}–{nees_band[1]:g})"
+    cover.axhspan(100 * coverage_band[0], 100 * coverage_band[1], color="0.88", zorder=0, label=band)
+    cover.axhline(100 * GAUSSIAN_COVERAGE, color="black", lw=0.9, ls="--", label="Gaussian, right σ (95.45 % / 1)")
+    nees.axhspan(*nees_band, color="0.88", zorder=0)
+    nees.axhline(1.0, color="black", lw=0.9, ls="--")
+    # the bands with room around them, wider where a filter is far off
+    covers = [100 * v for n in names for v in study.results[n].coverage_2sigma if math.isfinite(v)]
+    cover.set_ylim(min([90.0, *covers]) - 0.5, 100.5)
+    values = [v for n in names for v in study.results[n].nees if math.isfinite(v) and v > 0]
+    low, high = min([0.5, *values]) / 1.2, max([2.0, *values]) * 1.2
+    nees.set_yscale("log")
+    nees.set_ylim(low, high)
+    ticks = [t for t in (0.01, 0.1, 0.25, 0.5, 0.8, 1, 1.25, 2, 4, 10, 100) if low <= t <= high]
+    nees.set_yticks(ticks, [f"{t:g}" for t in ticks])
+    nees.minorticks_off()
+    cover.set_ylabel("share of errors within ±2σ [%]")
+    nees.set_ylabel("mean NEES e²/σ² (log)")
+    for ax in (cover, nees):
+        ax.set_xticks(list(states), list(s.state_names))
+        ax.set_xlabel("state")
+        ax.grid(alpha=0.3, axis="y")
+    _legend_below(fig, [cover, nees])
     return _save(fig, path)

@@ -6,7 +6,17 @@ import numpy as np
 import torch
 from scipy.stats import bootstrap
 
-__all__ = ["pooled_rmse", "per_run_rmse", "diverged_runs", "count_diverged", "paired_rmse_ratio", "DIVERGENCE_FACTOR"]
+__all__ = [
+    "pooled_rmse",
+    "per_run_rmse",
+    "diverged_runs",
+    "count_diverged",
+    "paired_rmse_ratio",
+    "calibration",
+    "DIVERGENCE_FACTOR",
+    "COVERAGE_SIGMAS",
+    "GAUSSIAN_COVERAGE",
+]
 
 
 def _check(estimates: torch.Tensor, truth: torch.Tensor) -> None:
@@ -15,6 +25,36 @@ def _check(estimates: torch.Tensor, truth: torch.Tensor) -> None:
             f"estimates and truth must both be [runs, steps, states], got {tuple(estimates.shape)} "
             f"and {tuple(truth.shape)}"
         )
+
+
+#: the interval whose coverage the study reports: ±2σ
+COVERAGE_SIGMAS = 2.0
+#: the share of a Gaussian within ±2σ of its mean, P(|z| ≤ 2) = erf(2/√2): what a calibrated std covers
+GAUSSIAN_COVERAGE = 0.9544997361036416
+
+
+def calibration(estimates: torch.Tensor, truth: torch.Tensor, std: torch.Tensor) -> dict[str, list]:
+    """How well a filter's claimed error std matches its errors e = x̂ − x, per state, over every run and step.
+
+    ``nees``: the mean of e_i² / σ_i² (the normalised estimation error squared of each state alone;
+    1 for a calibrated std, above 1 overconfident, below 1 too cautious). ``coverage``: the share
+    with |e_i| ≤ 2σ_i (``GAUSSIAN_COVERAGE`` = 95.45 % for calibrated Gaussian errors).
+    ``excluded``: per state, the entries left out of both because e or σ is not finite or σ ≤ 0
+    (a diverged run's NaN estimates, a collapsed std); counted, never a crash. A state with every
+    entry excluded has NaN for both.
+    """
+    _check(estimates, truth)
+    if std.shape != estimates.shape:
+        shapes = f"{tuple(std.shape)} and {tuple(estimates.shape)}"
+        raise ValueError(f"std and estimates must both be [runs, steps, states], got {shapes}")
+    error = (estimates.double() - truth.double()).flatten(0, 1)
+    sigma = std.double().flatten(0, 1)
+    valid = torch.isfinite(error) & torch.isfinite(sigma) & (sigma > 0)
+    count = valid.sum(0)
+    z = torch.where(valid, error / torch.where(valid, sigma, 1.0), 0.0)
+    nees = z.square().sum(0) / count
+    covered = ((z.abs() <= COVERAGE_SIGMAS) & valid).sum(0) / count
+    return {"nees": nees.tolist(), "coverage": covered.tolist(), "excluded": (~valid).sum(0).tolist()}
 
 
 def pooled_rmse(estimates: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:

@@ -302,6 +302,32 @@ def _reference_lines(study) -> list[str]:
     return [f"Ratios are per state, relative to {ref}; " + _divergence_sentence(study, ref), "", *lines]
 
 
+def _calibration_lines(study) -> list[str]:
+    """The calibration table (``FilterResult.nees``, ``coverage_2sigma``), when some filter gives an error std."""
+    rows = {name: r for name, r in study.results.items() if r.nees is not None}
+    if not rows:
+        return []
+    names = " / ".join(study.system.state_names)
+    lines = [
+        "## Calibration of the error std",
+        "",
+        "Filters that give an error std σ beside each estimate: the mean NEES e²/σ² per state (1 when σ is right; "
+        "above 1 the filter is overconfident, below 1 too cautious) and the share of errors within ±2σ (95.45 % "
+        f"for Gaussian errors with the right σ), over all {study.runs} × {study.steps} estimates. σ comes from "
+        "the Kalman-type filters' covariance P⁺, the PFs' weighted particle spread, and the learned filters' "
+        "uncertainty head, fitted after the filter on data of its own seed (docs/uncertainty.md). Left out: "
+        "entries with a non-finite error or σ, or σ ≤ 0.",
+        "",
+        f"| filter | σ from | NEES ({names}) | ±2σ coverage [%] ({names}) | left out |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        cover = " / ".join(f"{100 * v:.1f}" for v in r.coverage_2sigma)
+        left_out = " / ".join(str(v) for v in r.std_excluded) if any(r.std_excluded) else "0"
+        lines.append(f"| {name} | {r.std_source} | {_fmt(r.nees, 3)} | {cover} | {left_out} |")
+    return lines + [""]
+
+
 def _saturated(r) -> str:
     return _fmt(r.saturated, 3) if r.saturated is not None else "–"
 
@@ -328,7 +354,10 @@ def _results_table(study) -> list[str]:
 
 
 #: the fields of each filter in the scenario report's results.json
-_SCENARIO_FIELDS = ("rmse", "ratio_to_oracle", "cost_ms", "diverged", "diverged_runs", "repairs", "saturated")
+_SCENARIO_FIELDS = (
+    *("rmse", "ratio_to_oracle", "cost_ms", "diverged", "diverged_runs", "repairs", "saturated"),
+    *("std_source", "nees", "coverage_2sigma"),
+)
 
 #: bootstrap resamples of the report's paired comparison
 PAIRED_DRAWS = 4000
@@ -485,7 +514,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
     lines = _header_lines(title, profile) + _system_lines(study)
     lines += ["## Results", "", *(_state_columns_table(study, units) if layout.per_state else _results_table(study))]
     lines += ["", *_reference_lines(study), *(_paired_lines(study, layout.paired_with, paired) if paired else [])]
-    lines += _seed_lines(spread, study)
+    lines += _calibration_lines(study) + _seed_lines(spread, study)
     lines += _requirement_lines(spec.requirements) + _window_lines(spec.window_study, paper)
     lines += _training_lines(spec.training.costs if spec.training else {}) + _paper_lines(paper)
     if spec.notes:
@@ -497,7 +526,7 @@ def write_report(study, out_dir: str | Path, *, title: str, profile: str, spec: 
 
 
 def _write_csv(study, path: Path, units) -> None:
-    """One row per filter: RMSE per state (in ``units`` when given), ratio per state, cost and counts."""
+    """One row per filter: RMSE per state (in ``units`` when given), ratio per state, cost, counts, calibration."""
     s = study.system
     names = s.state_names
     rmse = [f"rmse_{n}" for n in names] if units is None else [f"rmse_{n} [{u}]" for n, u in zip(names, units)]
@@ -509,12 +538,16 @@ def _write_csv(study, path: Path, units) -> None:
         + [f"ratio_{n}" for n in names]
         + ["cost_ms", "threads", "throughput_per_s", "diverged", "repairs"]
         + [f"saturated_{n}" for n in names]
+        + [f"nees_{n}" for n in names]
+        + [f"coverage_2sigma_{n}" for n in names]
     )
     for name, r in study.results.items():
         ratio = r.ratio_to_oracle or [None] * s.state_dim
         saturated = r.saturated or [None] * s.state_dim
+        nees, cover = r.nees or [None] * s.state_dim, r.coverage_2sigma or [None] * s.state_dim
         writer.writerow(
             [name, *r.rmse, *ratio, r.cost_ms, r.threads, r.throughput_per_s, r.diverged, r.repairs, *saturated]
+            + [*nees, *cover]
         )
     atomic_write_text(path, fh.getvalue())
 
@@ -530,6 +563,8 @@ def _figures(study, out: Path, spec: ReportSpec, units, scale, paired: dict | No
     else:
         figs = {"one run": figures.plot_one_run(study, out / "run0_states_errors.png")}
     figs["per-run RMSE"] = figures.plot_per_run_boxes(study, out / "per_run_rmse_box.png", units=units)
+    if any(r.nees is not None for r in study.results.values()):
+        figs["calibration"] = figures.plot_calibration(study, out / "calibration.png")
     training = spec.training
     if training and training.curves:
         # reference lines on the validation set the curves are on (never the evaluation data's RMSEs)

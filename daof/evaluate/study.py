@@ -6,6 +6,8 @@ in ``cache_dir`` as soon as it is finished (written atomically, so an interrupti
 half-written entry), so an interrupted study restarts where it stopped.
 With ``dropout`` (``daof.evaluate.dropout.Dropout``) the measurements of that data set get NaN
 gaps before any filter sees them; the cache keeps those results apart from the complete-data ones.
+A filter that gives an error std (``Filter.std_source``) also gets its calibration: NEES and ±2σ
+coverage per state (``FilterResult.nees``, ``coverage_2sigma``), from a second pass of its own.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from tqdm import tqdm
 from daof.envs.recorded import cache_key
 from daof.envs.system import StochasticSystem
 from daof.evaluate.dropout import Dropout
-from daof.evaluate.metrics import DIVERGENCE_FACTOR, diverged_runs, per_run_rmse, pooled_rmse
+from daof.evaluate.metrics import DIVERGENCE_FACTOR, calibration, diverged_runs, per_run_rmse, pooled_rmse
 from daof.evaluate.timing import cost_per_estimate, threads, throughput
 from daof.io import atomic_save, safe_load
 
@@ -50,6 +52,14 @@ class FilterResult:
     ratio_to_oracle: list[float] | None = None
     wall_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    #: where the filter's error std comes from (``Filter.std_source``); None: it gives none, and so the three below
+    std_source: str | None = None
+    #: per state, the mean of e²/σ² over every run and step (``metrics.calibration``; 1 when calibrated)
+    nees: list[float] | None = None
+    #: per state, the share of estimates with |e| ≤ 2σ (95.45 % when calibrated)
+    coverage_2sigma: list[float] | None = None
+    #: per state, the entries left out of both (non-finite error, σ non-finite or ≤ 0)
+    std_excluded: list[int] | None = None
 
 
 @dataclass
@@ -102,16 +112,31 @@ def _cache_path(cache_dir: Path, name: str, dropout: dict | None = None) -> Path
     return cache_dir / (stem + ".pt")
 
 
-def _evaluate_one(
-    filt, data: TensorDict, timing_threads: int, measure_cost: bool, name: str = ""
-) -> tuple[FilterResult, torch.Tensor]:
-    # a bar per filter on a terminal (tqdm's disable=None: quiet elsewhere), fed by the filter's steps
-    with tqdm(total=data.numel(), desc=f"  {name}", unit="step", unit_scale=True, leave=False, disable=None) as bar:
+def _with_progress(filt, data: TensorDict, label: str, fn):
+    """``fn(filt, data)`` with a bar on a terminal (tqdm's disable=None: quiet elsewhere), fed by the filter's steps."""
+    with tqdm(total=data.numel(), desc=f"  {label}", unit="step", unit_scale=True, leave=False, disable=None) as bar:
         filt.progress = bar.update
         try:
-            rate, estimates, wall = throughput(filt, data)
+            return fn(filt, data)
         finally:
             filt.progress = None
+
+
+def _calibration_fields(filt, data: TensorDict, name: str) -> dict:
+    """The FilterResult fields of the filter's std (``run_with_std``, a pass of its own: ``run``'s timing stays
+    that of the estimates alone); none for a filter without one."""
+    source = getattr(filt, "std_source", None)
+    if source is None:
+        return {}
+    estimates, std = _with_progress(filt, data, f"{name} (std)", lambda f, d: f.run_with_std(d))
+    c = calibration(estimates, data["state"].to(estimates.device), std)
+    return {"std_source": source, "nees": c["nees"], "coverage_2sigma": c["coverage"], "std_excluded": c["excluded"]}
+
+
+def _evaluate_one(
+    filt, data: TensorDict, timing_threads: int, measure_cost: bool, name: str = "", calibrate: bool = True
+) -> tuple[FilterResult, torch.Tensor]:
+    rate, estimates, wall = _with_progress(filt, data, name, throughput)
     truth = data["state"]
     # the stats of the study's run: timing at batch 1 below runs the filter again
     stats = dict(getattr(filt, "stats", {}) or {})
@@ -120,6 +145,7 @@ def _evaluate_one(
         with threads(timing_threads):
             cost = cost_per_estimate(filt, data)
     saturated = stats.get("saturated")
+    std_fields = _calibration_fields(filt, data, name) if calibrate else {}
     result = FilterResult(
         rmse=pooled_rmse(estimates, truth).tolist(),
         per_run_rmse=per_run_rmse(estimates, truth).tolist(),
@@ -130,6 +156,7 @@ def _evaluate_one(
         saturated=[float(v) for v in saturated] if saturated is not None else None,
         wall_s=wall,
         extra={k: v for k, v in stats.items() if k != "repairs" and isinstance(v, (int, float, str))},
+        **std_fields,
     )
     return result, estimates.float()
 
@@ -148,6 +175,7 @@ def run_study(
     versions: dict[str, str] | None = None,
     reference: str = ORACLE,
     device: torch.device | str = "cpu",
+    calibrate: bool = True,
 ) -> Study:
     """Evaluate every filter in ``filters`` (name -> object with ``run(data)``) on one data set.
 
@@ -158,6 +186,8 @@ def run_study(
     protocol's PF-oracle; the exact Kalman filter ``"KF"`` on the linear system).
     ``device``: where the learned filters (``torch.nn.Module``s, already there) filter; the data is
     simulated on the CPU and moved there once, their estimates come back.
+    ``calibrate``: for every filter with an error std (``Filter.std_source``), also its NEES and ±2σ
+    coverage per state (``metrics.calibration``), from a second pass through ``run_with_std``.
     """
     data = system.simulate(runs, steps, seed)
     # the system's parameters are part of the key: a study of another μ never reuses this one's results
@@ -178,6 +208,9 @@ def run_study(
     for i, (name, filt) in enumerate(filters.items(), 1):
         path = _cache_path(cache, name, key.get("dropout")) if cache is not None else None
         filter_key = {**key, "version": (versions or {}).get(name)}
+        source = getattr(filt, "std_source", None) if calibrate else None
+        if source is not None:  # a result without the std's metrics is not reused for one with them
+            filter_key["std"] = source
         blob = _read_cache(path, log) if path is not None else None
         if blob is not None and blob["key"] == filter_key:
             results[name], estimates[name] = FilterResult(**blob["result"]), blob["estimates"]
@@ -187,12 +220,17 @@ def run_study(
         on_device = isinstance(filt, torch.nn.Module) and torch.device(device) != data.device
         if on_device and moved is None:
             moved = data.to(device)
-        result, est = _evaluate_one(filt, moved if on_device else data, timing_threads, measure_cost, name)
+        result, est = _evaluate_one(filt, moved if on_device else data, timing_threads, measure_cost, name, calibrate)
         est = est.to(data.device)
         results[name], estimates[name] = result, est
         rmse = ", ".join(f"{v:.4g}" for v in result.rmse)
         cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"
-        log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s")
+        calibrated = ""
+        if result.nees is not None:
+            nees = ", ".join(f"{v:.3g}" for v in result.nees)
+            cover = ", ".join(f"{100 * v:.1f} %" for v in result.coverage_2sigma)
+            calibrated = f"; NEES [{nees}], ±2σ coverage [{cover}] ({result.std_source})"
+        log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s{calibrated}")
         if path is not None:
             atomic_save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
     _add_oracle_metrics(results, reference, estimates, system)

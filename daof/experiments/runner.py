@@ -23,6 +23,7 @@ from daof.evaluate.study import ORACLE, Study, run_study
 from daof.experiments.jobs import TrainingJob, run_jobs
 from daof.filters.base import Filter
 from daof.filters.learned import load_filter
+from daof.filters.learned.uncertainty import head_path
 
 __all__ = [
     "checkpoint_fingerprint",
@@ -93,9 +94,10 @@ def run_trained_study(
 ) -> tuple[Study, dict]:
     """The study of ``classical`` filters (name -> filter) and every job's best checkpoint after them.
 
-    Learned filters are cached under a digest of their checkpoint (``checkpoint_fingerprint``), so
-    a retrained filter is never scored from a stale cache entry; classical ones under a digest of
-    their code and settings (``classical_fingerprint``), so an edited filter is run again.
+    Learned filters are cached under a digest of their checkpoint and uncertainty head
+    (``checkpoint_fingerprint``), so a retrained filter or a refitted head is never scored from a stale
+    cache entry; classical ones under a digest of their code and settings (``classical_fingerprint``), so
+    an edited filter is run again.
     ``dropout`` (a ``Dropout``) runs the study on the same data with those measurement gaps.
     ``device``: where the learned filters run (the classical ones stay on the CPU).
     Returns the study and every filter.
@@ -109,7 +111,7 @@ def run_trained_study(
     versions = {name: classical_fingerprint(filt, system) for name, filt in (classical or {}).items()}
     versions.update(
         {
-            name: f"{checkpoint_fingerprint([job.output_dir / 'best.pt'])}-{filters[name].missing_fill}"
+            name: f"{checkpoint_fingerprint(_filter_files(job.output_dir / 'best.pt'))}-{filters[name].missing_fill}"
             for name, job in jobs.items()
         }
     )
@@ -128,6 +130,12 @@ def run_trained_study(
         device=device,
     )
     return study, filters
+
+
+def _filter_files(path: Path) -> list[Path]:
+    """A filter's checkpoint and, where there is one, its uncertainty head (a refitted head is a new version)."""
+    head = head_path(path)
+    return [path, head] if head.is_file() else [path]
 
 
 def learning_curves(filters: dict, names=None) -> dict[str, list[dict]]:

@@ -1,5 +1,10 @@
 """The common interface of every filter: ``run(data) -> estimates [runs, steps, state_dim]``.
 
+A filter that knows how sure it is also offers ``run_with_std(data) -> (estimates, std)``: the same
+estimates and, beside each, its error standard deviation per state (√P_ii of a Kalman-type filter,
+the weighted particle spread of a PF, a learned filter's uncertainty head); ``std_source`` says
+where it comes from, and is None for a filter that gives none (``run_with_std`` then returns None).
+
 A filter sees only what a real filter would: y_t ("measurement"), u_{t-1} ("prev_control") and
 u_t ("control") for t = 1..T, plus the model if it is model-based. It starts from the prior
 x̂_0 = prior mean (``daof.envs.system`` time convention); the truth ("state") is never read.
@@ -25,6 +30,8 @@ class Filter:
     """
 
     name: str = "filter"
+    #: where ``run_with_std`` reads the error std from ("covariance", "particle spread", ...); None: it gives none
+    std_source: str | None = None
     #: called with the number of run-steps each filtering step finishes (a progress bar's ``update``)
     progress = None
 
@@ -38,11 +45,32 @@ class Filter:
         y, u_prev, u = self.validate(data)
         self.stats = {}
         estimates = self._run(y, u_prev, u)
-        # every filter: a run with a non-finite estimate or one outside the system's divergence limits
-        self.stats["diverged"] = int(self.system.diverged_runs(estimates).sum())
+        self._record(estimates)
         return estimates
 
+    def run_with_std(self, data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``run``'s estimates and each one's error std per state ``[runs, steps, state_dim]`` (None: no std).
+
+        The estimates are those ``run`` gives on the same data; ``run`` itself never pays for the std.
+        """
+        if self.std_source is None:
+            return self.run(data), None
+        y, u_prev, u = self.validate(data)
+        self.stats = {}
+        estimates, std = self._run_with_std(y, u_prev, u)
+        self._record(estimates)
+        return estimates, std
+
+    def _record(self, estimates: torch.Tensor) -> None:
+        """What every run notes in ``stats``: the runs with a non-finite estimate or one outside the
+        system's divergence limits."""
+        self.stats["diverged"] = int(self.system.diverged_runs(estimates).sum())
+
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _run_with_std(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        """(estimates, std), both [runs, steps, n], on validated tensors (filters with a ``std_source``)."""
         raise NotImplementedError
 
     def _steps(self, runs: int, steps: int):

@@ -148,7 +148,12 @@ class CovarianceRepair:
 
 # ----------------------------------------------------------------------------- filters
 class _KalmanBase(Filter):
-    """Shared loop: per run, reset to the prior; per step, repair P, predict(u_{t-1}), update(y_t)."""
+    """Shared loop: per run, reset to the prior; per step, repair P, predict(u_{t-1}), update(y_t).
+
+    ``run_with_std`` also returns √diag P⁺_t, the std the filter claims for each estimate.
+    """
+
+    std_source = "covariance"
 
     def __init__(self, system: StochasticSystem, dtype: torch.dtype = torch.float32, jitter: float = 1e-9):
         super().__init__(system)
@@ -209,6 +214,11 @@ class _KalmanBase(Filter):
         self.stats = {"repairs": self.repair.count, "diverged": diverged}
         estimates = torch.from_numpy(out).to(device=device, dtype=self.dtype)
         return (estimates, torch.from_numpy(var).to(device=device, dtype=self.dtype)) if variances else estimates
+
+    def _run_with_std(self, y, u_prev, u):
+        """Estimates and √diag P⁺_t, the filter's own error std of each estimate."""
+        estimates, variances = self._run(y, u_prev, u, variances=True)
+        return estimates, variances.clamp_min(0.0).sqrt()
 
     def covariance_schedule(self, data) -> dict[str, torch.Tensor]:
         """Per step t = 1..T, averaged over runs, the √diag of this filter's covariances (float64).

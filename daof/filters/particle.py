@@ -44,10 +44,12 @@ class ParticleFilter(Filter):
     of at most ``max_elements`` run-particles; one ``torch.Generator`` seeded by ``seed`` drives
     the chunks in order, so results depend on ``seed`` and the chunk size only. A run whose
     estimate goes non-finite keeps NaN estimates from then on and is counted in
-    ``stats["diverged"]``.
+    ``stats["diverged"]``. ``run_with_std`` also returns the particles' weighted spread per state
+    (the std of the filter's posterior), from the same particles and random stream.
     """
 
     name = "PF"
+    std_source = "particle spread"
 
     def __init__(
         self,
@@ -71,25 +73,36 @@ class ParticleFilter(Filter):
         #: what the particles follow: prior, process noise, f, g, measurement noise, state_dim
         self.model = system
 
-    @torch.no_grad()
     def _run(self, y, u_prev, u):
+        return self._chunks(y, u_prev, u, spread=False)[0]
+
+    def _run_with_std(self, y, u_prev, u):
+        """The estimates and the weighted particle spread √(Σ w^i (x^i − x̂_t)²) per state."""
+        return self._chunks(y, u_prev, u, spread=True)
+
+    @torch.no_grad()
+    def _chunks(self, y, u_prev, u, spread: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(estimates, spread or None) of all runs, filtered in chunks of at most ``max_elements`` run-particles."""
         runs = y.shape[0]
         generator = torch.Generator(device=y.device).manual_seed(int(self.seed))
         chunk = max(1, self.max_elements // self.num_particles)
         self.stats = {"resamples": 0, "diverged": 0}
         out = [
-            self._filter(y[i : i + chunk], u_prev[i : i + chunk], u[i : i + chunk], generator)
+            self._filter(y[i : i + chunk], u_prev[i : i + chunk], u[i : i + chunk], generator, spread)
             for i in range(0, runs, chunk)
         ]
-        return torch.cat(out)
+        estimates = torch.cat([e for e, _ in out])
+        return estimates, torch.cat([s for _, s in out]) if spread else None
 
-    def _filter(self, y, u_prev, u, generator):
+    def _filter(self, y, u_prev, u, generator, spread: bool = False):
+        """One chunk of runs -> (estimates, weighted particle std or None), [runs, steps, n] each."""
         s, n = self.model, self.num_particles
         runs, steps = y.shape[:2]
         y, u_prev, u = (v.to(torch.float32) for v in (y, u_prev, u))
         x = s.prior.sample((runs, n), generator)  # particles of x_0 ~ prior, [runs, N, state_dim]
         log_w = torch.full((runs, n), -math.log(n), device=y.device)
         out = torch.empty(runs, steps, s.state_dim, device=y.device)
+        std = torch.empty_like(out) if spread else None
         # missing channels (NaN), found once: the per-step test is a list lookup, so a study with
         # nothing missing runs exactly the loop it ran before
         present = ~torch.isnan(y)
@@ -106,6 +119,9 @@ class ParticleFilter(Filter):
             # a run that went non-finite stays NaN (resampling could otherwise revive it)
             diverged |= ~torch.isfinite(estimate).all(-1)
             out[:, t] = estimate.masked_fill(diverged[:, None], math.nan)
+            if spread:  # the weighted spread of the same particles, before resampling
+                variance = (w[..., None] * (x - estimate[:, None]).square()).sum(1)
+                std[:, t] = variance.sqrt().masked_fill(diverged[:, None], math.nan)
             uniforms = torch.rand(runs, generator=generator, device=y.device)
             if self.resample == "always":
                 rows = torch.ones(runs, dtype=torch.bool, device=y.device)
@@ -120,7 +136,7 @@ class ParticleFilter(Filter):
                 resamples += int(rows.sum())
         self.stats["resamples"] += resamples
         self.stats["diverged"] += int(diverged.sum())
-        return out
+        return out, std
 
     def _move(self, x, y, u_prev, u, present, generator, t: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Particles x_t [runs, N, n] from x_{t-1} and each one's log-weight increment [runs, N] at step index t.
@@ -229,7 +245,10 @@ class JointParameterPF(ParticleFilter):
         self.parameter_estimates: torch.Tensor | None = None
 
     def _run(self, y, u_prev, u):
-        joint = super()._run(y, u_prev, u)
+        return self._run_with_std(y, u_prev, u, spread=False)[0]
+
+    def _run_with_std(self, y, u_prev, u, spread: bool = True):
+        joint, std = self._chunks(y, u_prev, u, spread)
         d = self.system.state_dim
         self.parameter_estimates = joint[..., d:]
-        return joint[..., :d]
+        return joint[..., :d], std[..., :d] if std is not None else None

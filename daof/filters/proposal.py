@@ -64,7 +64,7 @@ class ProposalParticleFilter(ParticleFilter):
                     "the proposal PF's weights need one"
                 )
 
-    def _run(self, y, u_prev, u):
+    def _chunks(self, y, u_prev, u, spread):
         s = self.model
         self._q = s.process_noise.covariance.double()
         self._q_chol = torch.linalg.cholesky(self._q)
@@ -72,7 +72,7 @@ class ProposalParticleFilter(ParticleFilter):
         self._r = s.measurement_noise.covariance.double()
         self._r_mean = s.measurement_noise.mean.double()
         self._counts = {"prior_proposals": 0}  # a dict: no setting of the filter (runner.classical_fingerprint)
-        out = super()._run(y, u_prev, u)
+        out = super()._chunks(y, u_prev, u, spread)
         self.stats.update(self._counts)
         return out
 

@@ -33,6 +33,7 @@ from daof.envs.system import StochasticSystem
 from daof.filters.base import Filter
 from daof.filters.learned.config import MISSING_FILLS
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
+from daof.filters.learned.uncertainty import UncertaintyHead
 from daof.io import atomic_save
 
 if TYPE_CHECKING:
@@ -302,11 +303,10 @@ class LearnedFilter(nn.Module, Filter):
             )
 
     # ----------------------------------------------------------------- offline filtering
-    def run(self, data) -> torch.Tensor:
-        """``Filter.run``; then ``stats["saturated"]``, the share per state at a bound (``saturation``)."""
-        estimates = super().run(data)
+    def _record(self, estimates: torch.Tensor) -> None:
+        """``Filter``'s stats, then ``stats["saturated"]``, the share per state at a bound (``saturation``)."""
+        super()._record(estimates)
         self.stats["saturated"] = self.saturation(estimates).tolist()
-        return estimates
 
     def saturation(self, estimates: torch.Tensor) -> torch.Tensor:
         """Per state [n], the share of ``estimates [..., n]`` at an end of the output range (the plausible state range).
@@ -433,6 +433,58 @@ class LearnedFilter(nn.Module, Filter):
         y, u_prev, u = self.validate(data)
         with torch.inference_mode():
             return self._stream(y, u_prev, u)
+
+    # ----------------------------------------------------------------- uncertainty
+    @property
+    def uncertainty(self) -> UncertaintyHead | None:
+        """The uncertainty head ``run_with_std`` reads σ from (``daof.filters.learned.uncertainty``), or None.
+
+        Kept out of the filter's modules: ``state_dict``, ``save`` and the export are the filter alone.
+        """
+        return self.__dict__.get("_uncertainty")
+
+    def attach_uncertainty(self, head: UncertaintyHead | None) -> None:
+        """Give the filter a fitted head (None removes it); refused if it does not fit the filter's features."""
+        if head is not None and (head.state_dim != self.system.state_dim or head.in_features != self.feature_width):
+            raise ValueError(
+                f"{self.name}: the head maps {head.in_features} features to {head.state_dim} states; this filter has "
+                f"{self.feature_width} features and {self.system.state_dim} states"
+            )
+        self.__dict__["_uncertainty"] = head
+
+    @property
+    def std_source(self) -> str | None:
+        return "uncertainty head" if self.uncertainty is not None else None
+
+    @property
+    def feature_width(self) -> int:
+        """Width of ``uncertainty_features``: the window, the estimate and ρ_t."""
+        return self.layout.width + self.system.state_dim + 1
+
+    def uncertainty_features(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        """(estimates, features) [runs, steps, n] and [runs, steps, ``feature_width``] of validated data.
+
+        The features of step t are what the filter read and made: the window h_t, x̂_t and ρ_t. The
+        estimates are ``run``'s. No gradient is taken (the filter is frozen).
+        """
+        estimates, windows = [], []
+        for window, _, estimate in self.stream_steps(y, u_prev, u):
+            estimates.append(estimate)
+            windows.append(window)
+        estimates = torch.stack(estimates, 1)
+        return estimates, torch.cat([torch.stack(windows, 1), estimates, self._startup_column(y)], -1)
+
+    @staticmethod
+    def _startup_column(y: torch.Tensor) -> torch.Tensor:
+        """ρ_t for t = 1..T as [runs, steps, 1]."""
+        steps = torch.arange(1, y.shape[1] + 1, device=y.device).unsqueeze(-1)
+        return startup_feature(steps).to(y.dtype).expand(y.shape[0], -1, -1)
+
+    @torch.inference_mode()
+    def _run_with_std(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        head = self.uncertainty.to(y.device)
+        estimates, features = self.uncertainty_features(y, u_prev, u)
+        return estimates, head.std(features)
 
     # ----------------------------------------------------------------- checkpoint
     def save(self, path: str | Path, extra: dict | None = None) -> None:

@@ -1,17 +1,20 @@
 """``load_filter``: a learned filter from a saved file (``best.pt``, ``final.pt``) or a training ``checkpoint.pt``.
 
 Files are read with ``daof.io.safe_load`` (``torch.load(weights_only=True)``): tensors and plain
-data only, never code; a bad file is one ``ValueError`` line naming it.
+data only, never code; a bad file is one ``ValueError`` line naming it. A learned filter's uncertainty
+head, saved beside its file (``best.uncertainty.pt``), loads with it (``daof.filters.learned.uncertainty``).
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from daof.envs.registry import make_system
 from daof.envs.system import StochasticSystem
 from daof.filters.learned.base import LearnedFilter
 from daof.filters.learned.config import FilterConfig
+from daof.filters.learned.uncertainty import file_digest, head_path, load_head
 from daof.io import safe_load
 
 __all__ = ["load_filter"]
@@ -85,4 +88,20 @@ def load_filter(path: str | Path, system: StochasticSystem | None = None, expect
         raise ValueError(f"checkpoint {path} does not fit this filter's layout ({first})") from None
     module.extra = extra
     module.path = path
+    _attach_head(module, path)
     return module.eval()
+
+
+def _attach_head(module: LearnedFilter, path: Path) -> None:
+    """The uncertainty head beside ``path`` (``head_path``), if there is one fitted to this very file.
+
+    A head fitted to another version of the checkpoint is left off with a warning: the filter loads,
+    without a std.
+    """
+    where = head_path(path)
+    if not where.is_file():
+        return
+    try:
+        module.attach_uncertainty(load_head(where, file_digest(path)))
+    except ValueError as error:
+        warnings.warn(f"{error}; the filter loads without its uncertainty head", stacklevel=3)

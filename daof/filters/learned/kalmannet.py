@@ -169,6 +169,30 @@ class KalmanNet(LearnedFilter):
         """The same as ``run``: it already filters one step at a time."""
         return self.run(data)
 
+    # ----------------------------------------------------------------- uncertainty
+    @property
+    def feature_width(self) -> int:
+        """y_t (held), ν_t, x̂_t, x̂_t − x̂⁻_t, the three GRU states and ρ_t."""
+        n, m = self.system.state_dim, self.system.measurement_dim
+        return 2 * m + 2 * n + 2 * n * n + m * m + 1
+
+    def uncertainty_features(self, y, u_prev, u):
+        """(estimates, features) [runs, steps, ·]: per step what the gain network read and made: the measurement
+        (a missing channel held), the innovation ν_t (0 where missing), x̂_t, its update x̂_t − x̂⁻_t, the GRU
+        states after the step (the tracked Q, Σ and S) and ρ_t. The estimates are ``run``'s."""
+        state = self.initial_state(y.shape[0], y.device, y.dtype)
+        s, estimates, features = self.system, [], []
+        for t in self._steps(*y.shape[:2]):
+            estimate, new = self.step(state, y[:, t], u_prev[:, t], u[:, t])
+            prior = new.prev_prior
+            innovation = torch.nan_to_num(y[:, t] - s.g(prior, u[:, t]), nan=0.0)
+            parts = [new.prev_measurement, innovation, estimate, estimate - prior, new.h_q, new.h_sigma, new.h_s]
+            estimates.append(estimate)
+            features.append(torch.cat(parts, -1))
+            state = new
+        estimates = torch.stack(estimates, 1)
+        return estimates, torch.cat([torch.stack(features, 1), self._startup_column(y)], -1)
+
     # ----------------------------------------------------------------- as a TensorDict module
     def forward(self, measurement, prev_control, control, *state):
         estimate, new = self.step(KalmanNetState(*state), measurement, prev_control, control)

@@ -29,3 +29,9 @@ class SLF(LearnedFilter):
     def _run(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Every step at once: the windows of the open-loop frames, as the env would build them after a reset."""
         return self.estimate(self.layout.sliding_windows(self.open_loop_frames(y, u, u_prev)))
+
+    def uncertainty_features(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
+        """(estimates, features): the open-loop windows of every step at once, x̂_t and ρ_t (``LearnedFilter``)."""
+        windows = self.layout.sliding_windows(self.open_loop_frames(y, u, u_prev))
+        estimates = self.estimate(windows)
+        return estimates, torch.cat([windows, estimates, self._startup_column(y)], -1)
