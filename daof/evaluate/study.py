@@ -7,7 +7,7 @@ half-written entry), so an interrupted study restarts where it stopped.
 With ``dropout`` (``daof.evaluate.dropout.Dropout``) the measurements of that data set get NaN
 gaps before any filter sees them; the cache keeps those results apart from the complete-data ones.
 A filter that gives an error std (``Filter.std_source``) also gets its calibration: NEES and ±2σ
-coverage per state (``FilterResult.nees``, ``coverage_2sigma``), from a second pass of its own.
+coverage per state (``FilterResult.nees``, ``coverage_2sigma``), from the same pass as its estimates.
 """
 
 from __future__ import annotations
@@ -122,21 +122,26 @@ def _with_progress(filt, data: TensorDict, label: str, fn):
             filt.progress = None
 
 
-def _calibration_fields(filt, data: TensorDict, name: str) -> dict:
-    """The FilterResult fields of the filter's std (``run_with_std``, a pass of its own: ``run``'s timing stays
-    that of the estimates alone); none for a filter without one."""
-    source = getattr(filt, "std_source", None)
-    if source is None:
+def _calibration_fields(filt, estimates: torch.Tensor, std: torch.Tensor | None, truth: torch.Tensor) -> dict:
+    """The FilterResult fields of the filter's std; none for a filter without one."""
+    if std is None:
         return {}
-    estimates, std = _with_progress(filt, data, f"{name} (std)", lambda f, d: f.run_with_std(d))
-    c = calibration(estimates, data["state"].to(estimates.device), std)
-    return {"std_source": source, "nees": c["nees"], "coverage_2sigma": c["coverage"], "std_excluded": c["excluded"]}
+    c = calibration(estimates, truth.to(estimates.device), std)
+    return {
+        "std_source": filt.std_source,
+        "nees": c["nees"],
+        "coverage_2sigma": c["coverage"],
+        "std_excluded": c["excluded"],
+    }
 
 
 def _evaluate_one(
     filt, data: TensorDict, timing_threads: int, measure_cost: bool, name: str = "", calibrate: bool = True
 ) -> tuple[FilterResult, torch.Tensor]:
-    rate, estimates, wall = _with_progress(filt, data, name, throughput)
+    # one pass gives the estimates and, with ``calibrate``, the std beside them (``run_with_std``'s
+    # estimates are ``run``'s): the throughput then includes reading the std out
+    rate, out, wall = _with_progress(filt, data, name, lambda f, d: throughput(f, d, with_std=calibrate))
+    estimates, std = out if calibrate else (out, None)
     truth = data["state"]
     # the stats of the study's run: timing at batch 1 below runs the filter again
     stats = dict(getattr(filt, "stats", {}) or {})
@@ -145,7 +150,7 @@ def _evaluate_one(
         with threads(timing_threads):
             cost = cost_per_estimate(filt, data)
     saturated = stats.get("saturated")
-    std_fields = _calibration_fields(filt, data, name) if calibrate else {}
+    std_fields = _calibration_fields(filt, estimates, std, truth)
     result = FilterResult(
         rmse=pooled_rmse(estimates, truth).tolist(),
         per_run_rmse=per_run_rmse(estimates, truth).tolist(),
@@ -187,7 +192,7 @@ def run_study(
     ``device``: where the learned filters (``torch.nn.Module``s, already there) filter; the data is
     simulated on the CPU and moved there once, their estimates come back.
     ``calibrate``: for every filter with an error std (``Filter.std_source``), also its NEES and ±2σ
-    coverage per state (``metrics.calibration``), from a second pass through ``run_with_std``.
+    coverage per state (``metrics.calibration``), from the same pass (``run_with_std``).
     """
     data = system.simulate(runs, steps, seed)
     # the system's parameters are part of the key: a study of another μ never reuses this one's results

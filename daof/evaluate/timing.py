@@ -49,13 +49,19 @@ def cost_per_estimate(
     return 1e3 * timer.blocked_autorange(min_run_time=min_seconds).median / one.shape[1]
 
 
-def throughput(filt, data: TensorDictBase) -> tuple[float, torch.Tensor, float]:
+def throughput(filt, data: TensorDictBase, with_std: bool = False):
     """(estimates per second at batch = runs, the estimates, wall seconds) from one full run.
 
+    ``with_std``: the run is ``run_with_std`` where the filter has one, and the second item is
+    (estimates, std or None).
     Timed by hand rather than with ``torch.utils.benchmark.Timer``: the study needs the estimates
     of this very run, and a Timer would run the whole study's filtering more than once.
     """
     start = time.perf_counter()
-    estimates = filt.run(data)
+    run_with_std = getattr(filt, "run_with_std", None) if with_std else None
+    if run_with_std is not None:
+        out = run_with_std(data)
+    else:
+        out = (filt.run(data), None) if with_std else filt.run(data)
     wall = time.perf_counter() - start
-    return data.numel() / wall, estimates, wall
+    return data.numel() / wall, out, wall
