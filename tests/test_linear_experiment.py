@@ -67,9 +67,9 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     # the trainings: python -m daof.train system=linear filter=daof_v1|daof_v2 with the profile's overrides
     assert set(results["training"]) == {"SLF", "DAOF-v1", "DAOF-v2", "KalmanNet"}
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
-    # DAOF-v2 acts by increments, its default (daof/conf/filter/daof_v2.yaml)
+    # DAOF-v2 in the paper's form with the reward-spread critic, its default (daof/conf/filter/daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20-s1" / "run_config.json").read_text())
-    assert v2_config["network"]["v2_action"] == "increment"
+    assert (v2_config["network"]["v2_action"], v2_config["network"]["critic_scale"]) == ("estimate", "reward")
     assert f"report: {report / 'report.md'}" in out
     assert "DAOF-v1 RMSE ≤ 1.05× KF per state: " in out
     # the command in the report plans this run again

@@ -191,18 +191,19 @@ def test_filter_and_system_groups_give_each_row_its_settings(tmp_path):
     v1, v2 = (tiny_cfg("config.yaml", tmp_path, version=v) for v in ("v1", "v2"))
     settings = ("reward.baseline", "network.critic_form", "collector.episode_steps", "network.window_init")
     assert [OmegaConf.select(v1, key) for key in settings] == ["zero_action", "quadratic", 500, "newest"]
-    assert [OmegaConf.select(v2, key) for key in settings] == ["none", "mlp", 100, "uniform"]
+    assert [OmegaConf.select(v2, key) for key in settings] == ["none", "reward_quadratic", 100, "uniform"]
     assert (v1.kind, v2.kind) == ("DAOF-v1", "DAOF-v2") and v2.loss.alpha_init == pytest.approx(math.e)
-    # Experiment I and the linear check train DAOF-v2 by increments, Experiment II in the paper's form
-    forms = {s: compose_config(["filter=daof_v2", f"system={s}"]).network.v2_action for s in ("veh2dof", "linear")}
-    assert forms == {"veh2dof": "increment", "linear": "increment"}
+    # every system trains DAOF-v2 in the paper's form with the reward-spread critic; veh14dof changes its budget
+    for s in ("veh2dof", "linear", "veh14dof"):
+        cfg = compose_config(["filter=daof_v2", f"system={s}"])
+        assert (cfg.network.v2_action, cfg.network.critic_form, cfg.network.critic_scale, cfg.loss.gamma) == (
+            "estimate",
+            "reward_quadratic",
+            "reward",
+            0.0,
+        )
     e2 = compose_config(["filter=daof_v2", "system=veh14dof"])
-    assert (e2.network.v2_action, e2.network.critic_form, e2.loss.gamma, e2.include_controls) == (
-        "estimate",
-        "reward_quadratic",
-        0.0,
-        False,
-    )
+    assert (e2.collector.episode_steps, e2.optim.utd, e2.include_controls) == (500, 0.125, False)
     assert compose_config(["filter=slf", "system=veh14dof"]).optim.epochs_per_batch == 8
 
 
