@@ -48,6 +48,11 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
         assert row["ratio_to_oracle"] == pytest.approx(expected, rel=1e-12), name
         assert row["cost_ms"] > 0
     assert rows["KF"]["ratio_to_oracle"] == [1.0, 1.0]
+    # the experiment fits every trained filter's uncertainty head: every row reports its calibration
+    for name, row in rows.items():
+        assert row["std_source"] == ("uncertainty head" if name in results["training"] else row["std_source"]), name
+        assert row["std_source"] is not None and len(row["nees"]) == 2 and len(row["coverage_2sigma"]) == 2, name
+    assert (tmp_path / "daof-v2-N20-s1" / "best.uncertainty.pt").is_file()
     # the requirement is decided from the measured ratios and stated in the report
     check, kalmannet = results["requirements"]
     met = all(r <= 1.05 for r in rows["DAOF-v1"]["ratio_to_oracle"])

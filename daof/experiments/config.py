@@ -102,6 +102,7 @@ class Profile:
     overrides: dict[str, list[str]] = field(default_factory=dict)  # learned row -> this profile's training overrides
     windows: list[int] = field(default_factory=list)  # the window study's N (window_study's row at each)
     system: dict[str, Any] = field(default_factory=dict)  # system parameters of the study and of every training
+    uncertainty_runs: int = 256  # episodes each learned filter's uncertainty head is fitted on (0: no heads)
 
 
 @dataclass

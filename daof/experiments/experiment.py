@@ -12,9 +12,10 @@ input ends the run with one line (``SystemExit``) before anything trains. Then:
 
 1. the learned rows train as subprocesses of ``python -m daof.train`` (finished ones are reused,
    interrupted ones resumed);
-2. per scenario, the study of the classical filters and every trained filter (cached per filter,
-   so the same command continues after an interruption), and optionally the same study with
-   sensor dropout;
+2. per scenario, every trained filter's uncertainty head (fitted once per checkpoint, profile key
+   ``uncertainty_runs``), the study of the classical filters and every trained filter (cached per
+   filter, so the same command continues after an interruption), and optionally the same study
+   with sensor dropout;
 3. per scenario a report in ``<output_root>/report`` and, with several scenarios, a combined one.
 
 Model-based filters keep the system's nominal model in every scenario: a scenario changes how the
@@ -63,6 +64,7 @@ from daof.experiments.runner import (
     validation_references,
 )
 from daof.io import writable_directory
+from daof.train.uncertainty import HeadSettings, ensure_head
 
 __all__ = ["Plan", "ScenarioPlan", "main", "plan_experiment", "run_experiment"]
 
@@ -329,10 +331,19 @@ def choose_scenario_reference(sp: ScenarioPlan, study, classical: dict, fallback
 
 
 # ----------------------------------------------------------------------------------------- running
+def fit_heads(jobs: dict, settings: HeadSettings) -> None:
+    """Every trained filter's uncertainty head (``daof.train.uncertainty.ensure_head``): fitted once per checkpoint."""
+    print(f"   uncertainty heads ({settings.runs} runs × {settings.steps} steps; kept if fitted to this best.pt)")
+    for job in jobs.values():
+        ensure_head(job.output_dir, settings)
+
+
 def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
     """Steps 2 and 3 for one scenario: the study (and its dropout twin) and the report -> (study, report.md)."""
     cfg, p, scenario = sp.cfg, sp.profile, sp.scenario
     title = cfg.title.format(scenario=scenario)
+    if int(p.uncertainty_runs) > 0:
+        fit_heads(sp.jobs, HeadSettings(runs=int(p.uncertainty_runs), steps=int(p.steps)))
     print(f"2/3 Monte Carlo study ({scenario})")
     system = study_system(cfg, p)
     classical = classical_filters(cfg, p, system)

@@ -29,9 +29,9 @@ from tqdm import tqdm
 from daof.envs.registry import make_system
 from daof.evaluate.metrics import calibration
 from daof.filters.learned import LearnedFilter, load_filter
-from daof.filters.learned.uncertainty import UncertaintyHead, file_digest, head_path, save_head
+from daof.filters.learned.uncertainty import UncertaintyHead, file_digest, head_path, load_head, save_head
 
-__all__ = ["HEAD_SEED", "HeadSettings", "fit_head", "gaussian_nll", "main", "simulate_features"]
+__all__ = ["HEAD_SEED", "HeadSettings", "ensure_head", "fit_head", "gaussian_nll", "main", "simulate_features"]
 
 #: the head's data seed is this plus the run's training seed: disjoint from the training batches
 #: (seed · 1,000,003 + batch), the normaliser (7,000,001), validation (9100) and evaluation (20261122 + k)
@@ -159,6 +159,30 @@ def load_frozen(checkpoint: Path) -> tuple[LearnedFilter, dict]:
     filt.attach_uncertainty(None)  # the head is fitted anew
     filt.requires_grad_(False)
     return filt, config
+
+
+def ensure_head(run_dir: Path, settings: HeadSettings, log=print) -> Path:
+    """The head of ``run_dir/best.pt``: kept if one fitted to that very file is there, else fitted now.
+
+    What an experiment runs after its trainings; a head is not refitted for other ``settings`` (delete
+    its file, or run ``python -m daof.train.uncertainty``, to fit it again).
+    """
+    checkpoint = Path(run_dir) / "best.pt"
+    out = head_path(checkpoint)
+    digest = file_digest(checkpoint)
+    if out.is_file():
+        try:
+            load_head(out, digest)
+            return out
+        except ValueError:
+            pass  # fitted to an earlier best.pt, or not a head: fit it again
+    filt, config = load_frozen(checkpoint)
+    seed = HEAD_SEED + int(config.get("seeds", {}).get("train", 0))
+    head, record = fit_head(filt, settings, seed, log=log)
+    save_head(head, out, digest, record)
+    nees = ", ".join(f"{v:.3f}" for v in record["held_out_nees"])
+    log(f"  {run_dir}: uncertainty head fitted in {record['wall_s']} s (held-out NEES [{nees}])")
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
