@@ -12,7 +12,7 @@ from daof.evaluate.metrics import GAUSSIAN_COVERAGE, calibration
 from daof.evaluate.report import write_report
 from daof.filters import EKF, UKF, Filter, KalmanFilter, ParticleFilter, StationaryKalmanFilter
 from daof.filters.learned import load_filter, make_filter
-from daof.filters.learned.uncertainty import head_path, load_head
+from daof.filters.learned.uncertainty import file_digest, head_path, load_head
 from daof.train.uncertainty import HeadSettings, fit_head, gaussian_nll, main
 
 
@@ -187,3 +187,22 @@ def test_the_study_writes_the_calibration_fields_and_figure(lin, tmp_path):
     quiet = {"measure_cost": False, "log": lambda *_: None}
     without = run_study(lin, filters, runs=6, steps=40, seed=1, calibrate=False, **quiet)
     assert all(r.nees is None for r in without.results.values())
+
+
+def test_an_experiment_fits_a_head_once_per_checkpoint(tmp_path):
+    from daof.train.uncertainty import ensure_head
+
+    f = _tiny("SLF")
+    f.save(tmp_path / "best.pt")
+    (tmp_path / "run_config.json").write_text(json.dumps({"system": "linear", "seeds": {"train": 2}}))
+    settings = HeadSettings(runs=8, steps=40, epochs=2, num_cells=16)
+    messages = []
+    fits = lambda: sum("uncertainty head fitted" in m for m in messages)  # noqa: E731
+    path = ensure_head(tmp_path, settings, log=messages.append)
+    first = path.read_bytes()
+    assert fits() == 1 and load_head(path).extra["seed"] == 424_242_002
+    assert ensure_head(tmp_path, settings, log=messages.append) == path and fits() == 1  # kept: fitted to this best.pt
+    assert path.read_bytes() == first
+    f.save(tmp_path / "best.pt", extra={"retrained": True})  # a new best.pt: its head is fitted again
+    ensure_head(tmp_path, settings, log=messages.append)
+    assert fits() == 2 and load_head(path, file_digest(tmp_path / "best.pt")) is not None
