@@ -1,6 +1,7 @@
 """Exported streaming steps (daof.export): the step equals eager streaming, the torch.export program and
 the ONNX model (onnxruntime) equal eager on a 500-step trajectory with sensor gaps, the command and its
-refusals. The AOTInductor package's parity is the slow test (its compile takes minutes)."""
+refusals; with an uncertainty head the step's σ equals ``run_with_std``'s. The AOTInductor package's
+parity is the slow test (its compile takes minutes)."""
 
 import json
 
@@ -19,9 +20,11 @@ from daof.export import (
 )
 from daof.export.__main__ import main
 from daof.filters import UKF
-from daof.filters.learned import make_filter
+from daof.filters.learned import load_filter, make_filter
 from daof.filters.learned.kalmannet import STATE_KEYS
+from daof.filters.learned.uncertainty import file_digest, head_path, save_head
 from daof.train.schedules import ukf_schedule
+from daof.train.uncertainty import HeadSettings, fit_head
 
 onnxruntime = pytest.importorskip("onnxruntime")
 
@@ -36,6 +39,9 @@ FORMS = {
     "KalmanNet": ("KalmanNet", {}),
 }
 STEPS = 500
+KINDS = ["DAOF-v1", "DAOF-v2", "SLF", "KalmanNet"]
+#: a head fitted cheaply (test_uncertainty.py's recipe, smaller): its σ varies with ρ_t and the features
+HEAD = HeadSettings(runs=8, steps=60, epochs=3, batch_size=128, lr=1e-2, num_cells=16)
 
 
 def tiny(form: str):
@@ -51,6 +57,13 @@ def tiny(form: str):
     return f.eval()
 
 
+def with_head(form: str):
+    """``tiny(form)`` with an uncertainty head fitted to it (``HEAD``) and attached."""
+    f = tiny(form)
+    f.attach_uncertainty(fit_head(f, HEAD, seed=5, log=lambda *_: None)[0])
+    return f
+
+
 def gappy_data(system, runs: int = 3, steps: int = STEPS):
     """Simulated data with missing channels: a leading gap, single-channel and all-channel gaps of a few steps."""
     data = system.simulate(runs, steps, seed=20261207)
@@ -64,10 +77,16 @@ def gappy_data(system, runs: int = 3, steps: int = STEPS):
     return data
 
 
-def step_through(step, data) -> torch.Tensor:
-    """The step module called in Python step by step (state carried as the contract says)."""
+def step_through(step, data, std: bool = False, shift: int = 0):
+    """The step module called in Python step by step (state carried as the contract says); with ``std``
+    (estimates, σ); ``shift`` adds to the step index t (a wrong ρ_t, for the checks that must fail)."""
     info = contract(step, {})
-    return stream(lambda inputs: step(*(inputs.get(n) for n in step.arguments)), info, *_signals(data))
+
+    def call(inputs):
+        inputs = {**inputs, "step": inputs["step"] + shift} if shift else inputs
+        return step(*(inputs.get(n) for n in step.arguments))
+
+    return stream(call, info, *_signals(data), std=std)
 
 
 def _widths(step) -> dict[str, int]:
@@ -96,6 +115,19 @@ def assert_parity(estimates: torch.Tensor, eager: torch.Tensor, system) -> None:
     assert (worst <= tolerance(system)).all(), f"max |Δ| per state {worst.tolist()} > {tolerance(system).tolist()}"
 
 
+#: σ's bound relative to σ itself, beside the estimates' bound: measured ≤ 2.3e-6 (onnxruntime, DAOF-v1), a few
+#: ulps of the features passed through the head's normalisation and exp; a wrong feature or ρ_t is off by %
+STD_RTOL = 1e-4
+
+
+def assert_std_parity(std: torch.Tensor, eager: torch.Tensor, system) -> None:
+    """σ within the estimates' bound (1e-5 of each state's scale) and within ``STD_RTOL`` of eager's σ."""
+    assert_parity(std, eager, system)
+    assert bool((std > 0).all())
+    worst = ((std - eager).abs() / eager).flatten(0, 1).max(0).values
+    assert (worst <= STD_RTOL).all(), f"max |Δσ|/σ per state {worst.tolist()} > {STD_RTOL}"
+
+
 @pytest.mark.parametrize("form", list(FORMS))
 def test_step_module_equals_eager_streaming(form):
     """The step as a Python module, carried by hand, gives eager ``run_streaming``'s estimates to the bit."""
@@ -109,13 +141,91 @@ def test_step_module_equals_eager_streaming(form):
     assert not torch.equal(f.run_streaming(full), eager)
 
 
-@pytest.fixture(scope="module", params=["DAOF-v1", "DAOF-v2", "SLF", "KalmanNet"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_step_module_std_equals_run_with_std(kind):
+    """With a head the step module outputs σ as ``run_with_std`` on 500 steps with gaps, the estimates unchanged;
+    the check fails for a step fed the wrong t (ρ_t off by 50 steps)."""
+    f = with_head(kind)
+    data = gappy_data(f.system)
+    eager, eager_std = f.run_with_std(data)
+    step = streaming_step(f)
+    with torch.no_grad():
+        estimates, std = step_through(step, data, std=True)
+        torch.testing.assert_close(estimates, f.run_streaming(data), rtol=0, atol=0)
+        assert_std_parity(std, eager_std, f.system)
+        shifted = step_through(step, data, std=True, shift=50)[1]
+    with pytest.raises(AssertionError, match="per state"):
+        assert_std_parity(shifted, eager_std, f.system)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_head_adds_only_the_std_output(kind):
+    """The contract of a filter with a head is the one without plus ``std`` (after ``estimate``), its source and,
+    for KalmanNet, the step index t; carry names unchanged."""
+    f = tiny(kind)
+    plain = contract(streaming_step(f), {})
+    f.attach_uncertainty(fit_head(f, HeadSettings(runs=8, steps=20, epochs=1, num_cells=16), 5, lambda *_: None)[0])
+    step = streaming_step(f)
+    info = contract(step, {})
+    std = info["outputs"][1]
+    assert step.output_names[:2] == ["estimate", "std"] and std["name"] == "std"
+    assert std["shape"] == ["batch", 2] and std["units"] == ["rad", "rad/s"] and std["dtype"] == "float32"
+    assert "uncertainty head" in std["source"] and "exp(½ log σ²_t)" in std["source"]
+    assert info.pop("std_source") == "uncertainty head" and info.pop("uncertainty_head") == f.uncertainty.settings
+    del info["outputs"][1]
+    if kind == "KalmanNet":  # ρ_t needs t: the step index is an input of its own
+        assert info["arguments"][-1] == "step" and info["inputs"][-1]["name"] == "step"
+        assert info["initial"].pop("step") == 1 and info["carry"].pop("step") == "step + 1"
+        del info["arguments"][-1], info["inputs"][-1]
+    assert info == plain
+
+
+@pytest.fixture(scope="module", params=KINDS)
 def exported(request, tmp_path_factory):
     """(filter, its export directory) with the torch.export program and the ONNX model."""
     f = tiny(request.param)
     out = tmp_path_factory.mktemp(request.param)
     export_filter(f, out, ["torch", "onnx"])
     return f, out
+
+
+@pytest.fixture(scope="module", params=KINDS)
+def exported_with_head(request, tmp_path_factory):
+    """(filter with a head, its export directory) with the torch.export program and the ONNX model."""
+    f = with_head(request.param)
+    out = tmp_path_factory.mktemp(f"{request.param}-std")
+    export_filter(f, out, ["torch", "onnx"])
+    return f, out
+
+
+@pytest.mark.parametrize("fmt", ["torch", "onnx"])
+def test_exported_std_equals_run_with_std(exported_with_head, fmt):
+    """500 steps with gaps at batch 3, and batch 1: σ as ``run_with_std``'s (``assert_std_parity``), x̂ as eager's."""
+    f, out = exported_with_head
+    data = gappy_data(f.system)
+    eager, eager_std = f.run_with_std(data)
+    info = read_contract(out)
+    assert [spec["name"] for spec in info["outputs"]][:2] == ["estimate", "std"]
+    estimates, std = stream(load_step(out, fmt), info, *_signals(data), std=True)
+    assert_parity(estimates, f.run_streaming(data), f.system)
+    assert_std_parity(std, eager_std, f.system)
+    one = stream(load_step(out, fmt), info, *(x[2:, :150] for x in _signals(data)), std=True)
+    assert_std_parity(one[1], eager_std[2:, :150], f.system)
+    assert torch.equal(stream(load_step(out, fmt), info, *_signals(data)), estimates)  # without std: as before
+    session = onnxruntime.InferenceSession(str(out / info["files"]["onnx"]), providers=["CPUExecutionProvider"])
+    assert [o.name for o in session.get_outputs()] == streaming_step(f).output_names
+
+
+def test_without_a_head_there_is_no_std(exported):
+    """A filter without a head exports as before: no std output, no std_source; asking ``stream`` for σ is refused."""
+    f, out = exported
+    info = read_contract(out)
+    carried = {"SLF": ["next_window"], "KalmanNet": [f"next_state_{k}" for k in STATE_KEYS]}
+    assert [spec["name"] for spec in info["outputs"]] == ["estimate", *carried.get(f.kind, ["next_window"])]
+    assert "std_source" not in info and "uncertainty_head" not in info
+    assert f.kind != "KalmanNet" or "step" not in info["arguments"]
+    with pytest.raises(ValueError, match="exported without an uncertainty head"):
+        stream(load_step(out, "torch"), info, *_signals(gappy_data(f.system, steps=5)), std=True)
 
 
 @pytest.mark.parametrize("fmt", ["torch", "onnx"])
@@ -185,8 +295,28 @@ def test_command_exports_a_checkpoint(tmp_path, capsys):
         load_step(tmp_path, "torch")
 
 
+def test_command_exports_the_std_of_an_attached_head(tmp_path, capsys):
+    """A checkpoint with its head beside it (``best.uncertainty.pt``) exports σ too; a stale head is left off."""
+    f = with_head("KalmanNet")
+    f.save(tmp_path / "best.pt")
+    save_head(f.uncertainty, head_path(tmp_path / "best.pt"), file_digest(tmp_path / "best.pt"))
+    out = tmp_path / "exported"
+    assert main([str(tmp_path / "best.pt"), "--out", str(out), "--format", "torch"]) == 0
+    assert "std: the error std per state, from best.uncertainty.pt" in capsys.readouterr().out
+    info = read_contract(out)
+    assert info["std_source"] == "uncertainty head" and info["source"]["uncertainty_head"] == "best.uncertainty.pt"
+    assert len(info["source"]["uncertainty_head_sha256"]) == 64
+    data = gappy_data(f.system, steps=60)
+    std = stream(load_step(out, "torch"), info, *_signals(data), std=True)[1]
+    assert_std_parity(std, load_filter(tmp_path / "best.pt").run_with_std(data)[1], f.system)
+    f.save(tmp_path / "best.pt", extra={"another": "version"})  # the head no longer fits this file
+    with pytest.warns(UserWarning, match="fitted to another filter checkpoint"):
+        assert main([str(tmp_path / "best.pt"), "--out", str(out), "--format", "torch"]) == 0
+    assert "std" not in [spec["name"] for spec in read_contract(out)["outputs"]]
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("form", ["DAOF-v1", "DAOF-v2", "SLF", "KalmanNet"])
+@pytest.mark.parametrize("form", KINDS)
 def test_aoti_package_equals_eager(form, tmp_path):
     """The AOTInductor package (compiled C++) on the same 500-step trajectory: max |Δ| ≤ 1e-5 of each state's scale."""
     f = tiny(form)

@@ -1,7 +1,8 @@
 """Export a trained learned filter as a self-contained streaming step (docs/deploy.md).
 
 ``export_filter(filt, out, formats)`` writes the step (``streaming_step``) as a ``torch.export``
-program, an AOTInductor package and an ONNX model, with the JSON contract beside them;
+program, an AOTInductor package and an ONNX model, with the JSON contract beside them (the step
+also outputs the error std σ when the filter has an uncertainty head, ``filt.uncertainty``);
 ``python -m daof.export CHECKPOINT --out DIR`` does it from a checkpoint. ``load_step`` and
 ``stream`` run what was written.
 """
@@ -37,7 +38,8 @@ __all__ = [
 
 
 def export_filter(filt, out: str | Path, formats=("torch", "onnx"), source: dict | None = None) -> dict:
-    """Write ``filt``'s streaming step into directory ``out`` in ``formats``, then its contract (returned)."""
+    """Write ``filt``'s streaming step (with σ if it has an uncertainty head) into directory ``out`` in
+    ``formats``, then its contract (returned)."""
     from daof.filters.learned import LearnedFilter
 
     if not isinstance(filt, LearnedFilter):

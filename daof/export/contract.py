@@ -13,6 +13,7 @@ import torch
 from torch import nn
 
 from daof.export.step import KALMANNET_STATE, KalmanNetStep
+from daof.filters.learned.network import SCHEDULE_STEPS
 from daof.io import atomic_write_text
 
 __all__ = ["CONTRACT_FILE", "contract", "read_contract", "write_contract"]
@@ -45,10 +46,38 @@ def _state(s) -> dict:
     return {"names": list(s.state_names), "units": list(s.state_units), "scale": s.error_scale.tolist()}
 
 
+#: what the uncertainty head reads at step t (``uncertainty_features``), for the ``std`` output's description
+_HEAD_FEATURES = {
+    "KalmanNet": "y_t (a missing channel held), ν_t (0 where missing), x̂_t, x̂_t − x̂⁻_t, the three GRU states, ρ_t",
+    "SLF": "the window h_t (next_window), x̂_t, ρ_t",
+}
+
+
+def _std_output(step) -> list[dict]:
+    """The ``std`` output of a step with an uncertainty head (none without): its shape, units and source."""
+    if step.head is None:
+        return []
+    s, kind = step.filter.system, step.filter.kind
+    features = _HEAD_FEATURES.get(kind, "the window h_t (next_window, with x̂_{t−1}), x̂_t, ρ_t")
+    source = (
+        f"the filter's uncertainty head (an MLP, {step.head.in_features} features -> log σ²_t per state) on "
+        f"{features}; ρ_t = max(0, 1 − (t − 1)/{SCHEDULE_STEPS}); σ_t = exp(½ log σ²_t), as Filter.run_with_std "
+        "gives it"
+    )
+    meaning = "σ_t, the standard deviation of the error of x̂_t per state (in the state's units)"
+    names = {"names": list(s.state_names), "units": list(s.state_units)}
+    return [_tensor("std", s.state_dim, "float32", meaning, **names, source=source)]
+
+
 def _envelope(step, files: dict[str, str], source: dict | None, **fields) -> dict:
-    """The sidecar: what the filter is, ``fields`` (its step's own description), the files and their origin."""
+    """The sidecar: what the filter is, ``fields`` (its step's own description), the files and their origin.
+
+    A step with an uncertainty head adds ``std_source`` ("uncertainty head") and the head's sizes.
+    """
     filt, s = step.filter, step.filter.system
     head = {"filter": filt.kind, "class": type(filt).__name__, "system": s.name, "scenario": s.scenario}
+    if step.head is not None:
+        fields = {**fields, "std_source": filt.std_source, "uncertainty_head": step.head.settings}
     return {**head, **fields, "files": files, "torch": torch.__version__, "source": source or {}}
 
 
@@ -77,6 +106,7 @@ def contract(step: nn.Module, files: dict[str, str], source: dict | None = None)
     inputs = [described[name] for name in step.input_names]
     outputs = [
         _tensor("estimate", n, "float32", "x̂_t", **state),
+        *_std_output(step),
         _tensor("next_window", width, "float32", "h_t: feed back as window"),
     ]
     initial = {"window": f"zeros [batch, {width}] (any value: at step 1 the window starts afresh)", "step": 1}
@@ -118,9 +148,14 @@ def _kalmannet_contract(step: KalmanNetStep, files: dict[str, str], source: dict
     carried = {
         name: _tensor(name, start[name].shape[-1], "float32", _KALMANNET_MEANING[name]) for name in KALMANNET_STATE
     }
-    described = {**_signals(s, gaps), **carried}
-    outputs = [_tensor("estimate", s.state_dim, "float32", "x̂_t", **_state(s))]
+    step_input = _tensor("step", 1, "int64", "t = 1, 2, …: the index of this measurement since the reset (σ's ρ_t)")
+    described = {**_signals(s, gaps), **carried, "step": step_input}
+    outputs = [_tensor("estimate", s.state_dim, "float32", "x̂_t", **_state(s)), *_std_output(step)]
     outputs += [{**carried[name], "name": f"next_{name}", "meaning": f"feed back as {name}"} for name in carried]
+    initial = {name: start[name][0].tolist() for name in carried}
+    carry = {name: f"next_{name}" for name in carried}
+    if "step" in step.arguments:  # with a head
+        initial["step"], carry["step"] = 1, "step + 1"
     return _envelope(
         step,
         files,
@@ -129,8 +164,8 @@ def _kalmannet_contract(step: KalmanNetStep, files: dict[str, str], source: dict
         arguments=list(step.arguments),
         inputs=[described[name] for name in step.input_names],
         outputs=outputs,
-        initial={name: start[name][0].tolist() for name in carried},
-        carry={name: f"next_{name}" for name in carried},
+        initial=initial,
+        carry=carry,
     )
 
 

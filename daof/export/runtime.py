@@ -63,17 +63,19 @@ def _onnx_step(path: Path, names: list[str], threads: int):
     return step
 
 
-def stream(step, info: dict, measurement, control=None, prev_control=None) -> torch.Tensor:
-    """Estimates [runs, steps, n] of ``step`` on [runs, steps, ·] data, carrying the state from its initial value.
+def stream(step, info: dict, measurement, control=None, prev_control=None, std: bool = False):
+    """Estimates [runs, steps, n] of ``step`` on [runs, steps, ·] data, carrying the state from its initial value;
+    with ``std``, (estimates, σ) as ``Filter.run_with_std`` (a step exported with an uncertainty head).
 
     The per-step inputs are sliced before the loop, so the loop holds the step and the carry only
     (``benchmarks/bench_learned.py`` times it).
     """
-    return trajectory(step, info, measurement, control, prev_control)()
+    return trajectory(step, info, measurement, control, prev_control, std)()
 
 
-def trajectory(step, info: dict, measurement, control=None, prev_control=None):
-    """A function that streams the data through ``step`` and returns the estimates (``stream``, prepared).
+def trajectory(step, info: dict, measurement, control=None, prev_control=None, std: bool = False):
+    """A function that streams the data through ``step`` and returns the estimates, with ``std`` also σ
+    (``stream``, prepared).
 
     The carried inputs start at the contract's ``initial`` values and take the outputs its ``carry``
     names; ``step`` (t = 1, 2, …) is an input of its own, set before the loop.
@@ -81,6 +83,11 @@ def trajectory(step, info: dict, measurement, control=None, prev_control=None):
     runs, steps = measurement.shape[:2]
     spec = {entry["name"]: entry for entry in info["inputs"]}
     outputs = [entry["name"] for entry in info["outputs"]]
+    if std and "std" not in outputs:
+        raise ValueError(
+            f"this {info.get('filter', 'filter')} step has no std output: it was exported without an uncertainty "
+            "head (fit one: python -m daof.train.uncertainty RUN_DIR, then export again)"
+        )
     carry = {name: outputs.index(source) for name, source in info["carry"].items() if source in outputs}
     per_step = {"measurement": measurement.unbind(1)}
     if "control" in spec:
@@ -100,7 +107,17 @@ def trajectory(step, info: dict, measurement, control=None, prev_control=None):
             out.append(result[0])
         return torch.stack(out, 1)
 
-    return run
+    def run_with_std() -> tuple[torch.Tensor, torch.Tensor]:
+        out, sigma, carried, k_std = [], [], start, outputs.index("std")
+        for inputs in per_step:
+            inputs.update(carried)
+            result = step(inputs)
+            carried = {name: result[k] for name, k in carry.items()}
+            out.append(result[0])
+            sigma.append(result[k_std])
+        return torch.stack(out, 1), torch.stack(sigma, 1)
+
+    return run_with_std if std else run
 
 
 def _initial(value, spec: dict, runs: int) -> torch.Tensor:

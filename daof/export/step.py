@@ -1,13 +1,14 @@
 """``StreamingStep``: one step of a learned filter as a pure function of tensors, for export.
 
-(y_t, u_t, u_{t−1}, h_{t−1}, x̂_{t−1}, t) -> (x̂_t, h_t): the caller carries the window h and, for
+(y_t, u_t, u_{t−1}, h_{t−1}, x̂_{t−1}, t) -> (x̂_t, [σ_t,] h_t): the caller carries the window h and, for
 the closed-loop filters, the estimate; nothing else is remembered between steps. The step reuses
 the filter's own deterministic path (``_inference_layers``, ``_fast_estimate``) and does what its
 ``stream_steps`` loop does around it: a missing (NaN) channel reads as its last present value
 (the newest frame of h_{t−1}; the channel's training mean at t = 1), or for DAOF-v1 with
 ``missing_fill="prediction"`` as its predicted measurement; at t = 1 the window is the first frame
 behind N − 1 copies of it. DAOF-v1's model f, g and its per-step tables (K̄_t, b_t, √diag S_t) are
-constants of the step, indexed by t.
+constants of the step, indexed by t. A filter with an uncertainty head (``filt.uncertainty``) also
+outputs σ_t, its error std per state, from the head on the same features ``run_with_std`` gives it.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from torch import nn
 
 from daof.envs.gaps import MISSING_KEY
 from daof.filters.learned.kalmannet import STATE_KEYS, KalmanNetState
+from daof.filters.learned.network import startup_feature
 
 __all__ = ["KalmanNetStep", "StreamingStep", "streaming_step"]
 
@@ -27,10 +29,13 @@ def streaming_step(filt) -> nn.Module:
 
 
 class _FilterStep(nn.Module):
-    """What every exported step shares: the filter frozen in eval mode, and which arguments it takes."""
+    """What every exported step shares: the filter frozen in eval mode (its uncertainty head too, if it has
+    one), which arguments it takes and what it outputs."""
 
     #: every argument of ``forward``, in order (subclasses)
     arguments: tuple[str, ...] = ()
+    #: the outputs that feed the carried inputs, after the estimate (and σ)
+    carried_outputs: tuple[str, ...] = ()
     closed_loop = True
 
     def __init__(self, filt):
@@ -39,6 +44,20 @@ class _FilterStep(nn.Module):
         for p in self.filter.parameters():
             p.requires_grad_(False)
         self.has_controls = filt.system.control_dim > 0
+        #: the uncertainty head σ_t comes from, or None (no ``std`` output)
+        self.head = None if filt.uncertainty is None else filt.uncertainty.eval().requires_grad_(False)
+
+    @property
+    def output_names(self) -> list[str]:
+        """The outputs in order: ``estimate``, ``std`` when the filter has a head, then the carried state."""
+        return ["estimate", *(["std"] if self.head is not None else []), *self.carried_outputs]
+
+    def _std(self, features: list[torch.Tensor], step) -> torch.Tensor:
+        """σ_t per state, exp(½ log σ²_t) of the head on ``features`` and ρ_t (as ``run_with_std``)."""
+        if step is None:
+            raise ValueError(f"{self.filter.name}'s step has an uncertainty head: it needs the step index t for ρ_t")
+        rho = startup_feature(step).to(features[0].dtype)
+        return self.head.std(torch.cat([*features, rho], -1))
 
     @property
     def input_names(self) -> list[str]:
@@ -84,7 +103,7 @@ class StreamingStep(_FilterStep):
         self.register_buffer(name, tensor.detach().clone())
         return name
 
-    output_names = ["estimate", "next_window"]
+    carried_outputs = ("next_window",)
 
     def _layers(self) -> list[tuple]:
         def get(item):
@@ -100,7 +119,8 @@ class StreamingStep(_FilterStep):
     arguments = ("measurement", "control", "prev_control", "window", "prev_estimate", "step")
 
     def forward(self, measurement, control, prev_control, window, prev_estimate, step):
-        """(x̂_t, h_t) of one step; control and prev_control are None without controls, prev_estimate for the SLF."""
+        """(x̂_t, h_t) of one step, (x̂_t, σ_t, h_t) with a head; control and prev_control are None without
+        controls, prev_estimate for the SLF. σ_t reads h_t, x̂_t and ρ_t (``uncertainty_features``)."""
         filt, layout, prev = self.filter, self.layout, prev_estimate
         u = measurement[..., :0] if control is None else control  # f and g take empty controls
         u_prev = measurement[..., :0] if prev_control is None else prev_control
@@ -116,7 +136,9 @@ class StreamingStep(_FilterStep):
         frame = filt._frame(prev, self.measured.frame(values))
         window = torch.where(first, layout.first_window(frame), layout.slide(window, frame))
         estimate = filt._fast_estimate(self._layers(), window, prev, u_prev, step)
-        return estimate, window
+        if self.head is None:
+            return estimate, window
+        return estimate, self._std([window, estimate], step), window
 
     def initial_state(self, batch: int = 1) -> dict[str, torch.Tensor]:
         """The carried inputs before the first measurement: h_0 (any value; zeros), x̂_0 (the prior mean), t = 1."""
@@ -136,14 +158,17 @@ class KalmanNetStep(_FilterStep):
 
     The filter's own ``step`` (the model's f and g, the gain network, the gaps' rule), with the
     state as seven tensors the caller carries: x̂_{t−1}, x̂_{t−2}, x̂⁻_{t−1}, y_{t−1} and the three
-    GRUs' hidden states (``KalmanNetState``).
+    GRUs' hidden states (``KalmanNetState``). With an uncertainty head it also takes ``step`` (t, for
+    the head's ρ_t) and outputs σ_t after x̂_t.
     """
 
     arguments = ("measurement", "control", "prev_control", *KALMANNET_STATE)
-    output_names = ["estimate", *(f"next_{k}" for k in KALMANNET_STATE)]
+    carried_outputs = tuple(f"next_{k}" for k in KALMANNET_STATE)
 
     def __init__(self, filt):
         super().__init__(filt)
+        if self.head is not None:
+            self.arguments = (*type(self).arguments, "step")
         with torch.no_grad():  # build the model's constant caches outside tracing
             self.filter.initial_state(1)
 
@@ -159,9 +184,11 @@ class KalmanNetStep(_FilterStep):
         state_h_q,
         state_h_sigma,
         state_h_s,
+        step=None,
     ):
-        """(x̂_t, the next state's seven tensors) of one step; control and prev_control are None without
-        controls. The arguments are named as the exported program's inputs (``KALMANNET_STATE``)."""
+        """(x̂_t, [σ_t,] the next state's seven tensors) of one step; control and prev_control are None without
+        controls, step without a head. The arguments are named as the exported program's inputs
+        (``KALMANNET_STATE``). σ_t reads what ``KalmanNet.uncertainty_features`` gives the head."""
         u = measurement[..., :0] if control is None else control
         u_prev = measurement[..., :0] if prev_control is None else prev_control
         state = KalmanNetState(
@@ -175,10 +202,20 @@ class KalmanNetStep(_FilterStep):
         )
         estimate, new = self.filter.step(state, measurement, u_prev, u)
         # x̂_{t−1} passes through as the next x̂_{t−2}: a copy, as ONNX renames an input that is also an output
-        return (estimate, *new._replace(prev_estimate=new.prev_estimate.clone()))
+        carried = new._replace(prev_estimate=new.prev_estimate.clone())
+        if self.head is None:
+            return (estimate, *carried)
+        prior = new.prev_prior
+        innovation = torch.nan_to_num(measurement - self.filter.system.g(prior, u), nan=0.0)
+        features = [new.prev_measurement, innovation, estimate, estimate - prior, new.h_q, new.h_sigma, new.h_s]
+        std = self._std(features, step)
+        return (estimate, std, *carried)
 
     def initial_state(self, batch: int = 1) -> dict[str, torch.Tensor]:
-        """The state before the first measurement (``KalmanNet.initial_state``)."""
+        """The state before the first measurement (``KalmanNet.initial_state``); with a head, t = 1."""
         with torch.no_grad():
             state = self.filter.initial_state(batch)
-        return {name: value.contiguous() for name, value in zip(KALMANNET_STATE, state)}
+        state = {name: value.contiguous() for name, value in zip(KALMANNET_STATE, state)}
+        if self.head is not None:
+            state["step"] = torch.ones(batch, 1, dtype=torch.int64)
+        return state
