@@ -2,10 +2,9 @@
 
     .venv/bin/python diagnostics/critic_check.py runs/linear_check/paper/nominal/daof-v1-N20 --step 1
 
-The DAOF of a run that acts by updates (DAOF-v1, or DAOF-v2 in the increment form; its last
-``checkpoint.pt``: actor, both critics) meets the step-t states of its own training env
-(``--resets`` resets of the batched env, then t − 1 steps of the filter itself). In unit actions
-a (the update of the prediction, or of x̂_{t−1} for DAOF-v2, is b_t ⊙ a), per state:
+The DAOF of a run that acts by updates (DAOF-v1; its last ``checkpoint.pt``: actor, both critics)
+meets the step-t states of its own training env (``--resets`` resets of the batched env, then
+t − 1 steps of the filter itself). In unit actions a (the update of the prediction is b_t ⊙ a), per state:
 
 - ``c × actor``: the deterministic action tanh(loc) the filter uses, scaled by c (c = 1: as used);
 - ``critic argmax``: the argmax of min_i μ_i(h_t, a) on a grid (what the actor climbs, without

@@ -65,8 +65,9 @@ def test_pipeline_writes_table2_report_in_paper_units(tmp_path, capsys):
     jobs = sp.jobs
     assert list(jobs) == ["SLF", "DAOF-v2"] and len({job.output_dir for job in jobs.values()}) == len(ROWS)
     v2 = jobs["DAOF-v2"].requested_config
-    # DAOF-v2 trains with veh14dof's own form (daof/conf/tuning/veh14dof_daof_v2.yaml), in its own directory
-    assert v2["network"]["critic_form"] == "reward_quadratic" and v2["network"]["v2_action"] == "estimate"
+    # DAOF-v2 trains with its critic and veh14dof's own budget (daof/conf/tuning/veh14dof_daof_v2.yaml), in its
+    # own directory
+    assert v2["network"]["critic_form"] == "reward_quadratic" and v2["network"]["critic_scale"] == "reward"
     assert v2["collector"]["feedback"] == "mean" and jobs["DAOF-v2"].output_dir == tmp_path / "daof-v2-rs-N20-s1"
     # from the profile's bank, in the experiment's cache; both trainings on the profile's system
     assert v2["overrides"]["replay"] == {**v2["overrides"]["replay"], "runs": 8, "cache_dir": str(tmp_path / "cache")}

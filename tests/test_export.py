@@ -34,7 +34,6 @@ FORMS = {
     "DAOF-v2": ("DAOF-v2", {}),
     "SLF": ("SLF", {}),
     "DAOF-v1-hold": ("DAOF-v1", {}),
-    "DAOF-v2-increment": ("DAOF-v2", {"v2_action": "increment"}),
     "DAOF-v2-flags": ("DAOF-v2", {"missing_mask": True}),
     "KalmanNet": ("KalmanNet", {}),
 }

@@ -1,9 +1,11 @@
 """Learned filters: one class per kind, closed-loop ``run`` equals an env rollout (and a
 TensorDictSequential and a Collector), the fast path equals the network, checkpoints, bounds, bad input."""
 
+import dataclasses
 import os
 import pickle
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -19,7 +21,6 @@ from daof.filters.learned import (
     SLF,
     DAOFv1,
     DAOFv2,
-    DAOFv2Increment,
     FilterConfig,
     LearnedFilter,
     UpdateFilter,
@@ -37,7 +38,6 @@ from daof.train.schedules import ukf_schedule
 FORMS = {
     "DAOF-v1": ("DAOF-v1", {}),
     "DAOF-v2": ("DAOF-v2", {}),
-    "DAOF-v2-increment": ("DAOF-v2", {"v2_action": "increment"}),
     "SLF": ("SLF", {}),
 }
 
@@ -53,14 +53,13 @@ def small_form(form, **config):
     return small(kind, **fields, **config)
 
 
-@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "DAOF-v2-increment"])
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2"])
 def test_offline_run_equals_env_rollout(kind):
     """``run`` on simulate(seed) gives exactly the estimates of an env rollout with the same seed.
 
     The rollout runs 2 episodes of 15 steps, so the window is padded (with copies of the first
     frame) after a reset too."""
-    extra = {"v2_action": "increment"} if kind.endswith("increment") else {}
-    f = small(kind.removesuffix("-increment"), **extra)
+    f = small(kind)
     env = make_env("veh2dof", batch_size=3, window=4, seed=11, max_steps=15)
     with torch.no_grad():
         rollout = env.rollout(30, f.filter_module(), break_when_any_done=False)
@@ -84,15 +83,14 @@ def test_exploration_policy_deterministic_mode_is_the_filter():
     torch.testing.assert_close(a, b)
 
 
-@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2", "DAOF-v2-increment"])
+@pytest.mark.parametrize("kind", ["DAOF-v1", "DAOF-v2"])
 def test_mean_feedback_feeds_back_the_deterministic_estimate_while_the_action_explores(kind):
     """``exploration_policy("mean")``: the env's next x̂_{t−1} is the filter's own estimate, the action is sampled.
 
     Its fed-back estimates are exactly the deterministic filter's closed loop on the same data,
     while the sampled actions (what the reward scores) differ from them.
     """
-    extra = {"v2_action": "increment"} if kind.endswith("increment") else {}
-    f = small(kind.removesuffix("-increment"), **extra)
+    f = small(kind)
     env = make_env("veh2dof", batch_size=3, window=4, seed=7, max_steps=12)
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):  # as a collector runs it
         out = env.rollout(12, exploration_policy(f, "mean"), break_when_any_done=False)
@@ -238,24 +236,6 @@ def test_slf_is_open_loop_and_vectorised():
     torch.testing.assert_close(f.run_streaming(data), est, atol=1e-6, rtol=1e-5)
 
 
-def test_incremental_v2_updates_the_previous_estimate_within_a_bound_from_data():
-    """x̂_t − x̂_{t−1} = b_t ⊙ a_t, b_t = k · max(σ_Δ, ρ_t σ_0) fitted on simulated states, no model."""
-    f = small("DAOF-v2", v2_action="increment")
-    assert f.action_key == "correction" and f.acts_by_update
-    states = f.system.simulate(4, 50, seed=7_000_001)["state"]
-    step_change = (states[:, 1:] - states[:, :-1]).flatten(0, 1).std(0)
-    first = (states[:, 0] - f.system.prior.mean).pow(2).mean(0).sqrt()
-    torch.testing.assert_close(f.correction_scale[-1], 4.0 * step_change)
-    torch.testing.assert_close(f.correction_scale[0], 4.0 * torch.maximum(step_change, first))
-    data = f.system.simulate(2, 30, seed=3)
-    est = f.run(data)
-    prev = torch.cat([f.system.prior.mean.expand(2, 1, -1), est[:, :-1]], 1)
-    unit = (est - prev) / f.correction_scale[:30]
-    assert unit.abs().max() <= 1.0 + 1e-5 and unit.abs().max() > 0
-    with pytest.raises(ValueError, match="v2_action"):
-        FilterConfig(kind="DAOF-v2", system="veh2dof", v2_action="jump")
-
-
 def test_checkpoint_round_trip(tmp_path):
     f = small("DAOF-v2")
     f.save(tmp_path / "f.pt", extra={"note": 1})
@@ -382,14 +362,13 @@ def test_slf_missing_mask_flags_the_gaps_in_every_frame():
 # ----------------------------------------------------------------------------- one class per kind
 def test_each_kind_is_its_own_class_on_a_shared_base():
     """``make_filter`` and ``LearnedFilter(config)`` (the name before the split) build the class of the kind."""
-    expected = {"DAOF-v1": DAOFv1, "DAOF-v2": DAOFv2, "DAOF-v2-increment": DAOFv2Increment, "SLF": SLF}
+    expected = {"DAOF-v1": DAOFv1, "DAOF-v2": DAOFv2, "SLF": SLF}
     for form, cls in expected.items():
         kind, fields = FORMS[form]
         config = FilterConfig(kind=kind, system="veh2dof", window=3, num_cells=8, **fields)
         for f in (make_filter(kind, config), LearnedFilter(config), cls(config)):
             assert type(f) is cls and isinstance(f, LearnedFilter) and f.name == kind
-        assert issubclass(cls, UpdateFilter) == (form in ("DAOF-v1", "DAOF-v2-increment"))
-    assert isinstance(make_filter("DAOF-v2", system="veh2dof", v2_action="increment"), DAOFv2)
+        assert issubclass(cls, UpdateFilter) == (form == "DAOF-v1")
     with pytest.raises(ValueError, match="makes a DAOFv2, not a DAOFv1"):
         DAOFv1(FilterConfig(kind="DAOF-v2", system="veh2dof"))
     with pytest.raises(ValueError, match="got a SLF config"):
@@ -459,7 +438,6 @@ def test_filter_modules_say_what_they_read():
     reads = {
         "DAOF-v1": ["history", "prev_estimate", "prev_control", "step"],
         "DAOF-v2": ["history", "step"],
-        "DAOF-v2-increment": ["history", "prev_estimate", "prev_control", "step"],
         "SLF": ["history"],
     }
     for form, keys in reads.items():
@@ -552,6 +530,76 @@ def test_load_filter_refuses_a_checkpoint_with_a_retired_option_in_one_line(tmp_
     assert f"{option}={value!r} was retired" in message, message
     # the value that survives loads; another kind never read DAOF-v1's options
     assert FilterConfig.from_dict({"kind": "DAOF-v2", "system": "veh2dof", "correction_bound": "kalman"}).kind
+
+
+def v2_checkpoint(path, where: str, v2_action: str):
+    """A DAOF-v2 saved before its increment form was removed, naming ``v2_action``: a saved filter, a
+    training checkpoint with the filter config its trainer stored, or an older one with only the
+    training config (``run_config.json``'s content)."""
+    f = small("DAOF-v2", window=3)
+    if where == "saved":
+        torch.save({"config": dict(vars(f.config)) | {"v2_action": v2_action}, "state_dict": f.state_dict()}, path)
+        return f
+    network = {"num_cells": 16, "depth": 3, "v2_action": v2_action}
+    config = {"kind": "DAOF-v2", "system": "veh2dof", "window": 3, "network": network}
+    blob = {"training": {"frames": 1}, "config": config, "filter": f.state_dict()}
+    if where == "filter_config":
+        blob["filter_config"] = dict(vars(f.config)) | {"v2_action": v2_action}
+    atomic_save(blob, path)
+    return f
+
+
+@pytest.mark.parametrize("where", ["saved", "filter_config", "config"])
+def test_a_daof_v2_checkpoint_naming_the_estimate_form_still_loads(tmp_path, where):
+    """``v2_action="estimate"`` (every DAOF-v2 saved before 2026-12-07 that is not of the increment form)
+    is the only form left: the option is ignored and the filter loads with the same estimates."""
+    f = v2_checkpoint(tmp_path / "f.pt", where, "estimate")
+    g = load_filter(tmp_path / "f.pt")
+    assert type(g) is DAOFv2 and g.config == f.config and not hasattr(g.config, "v2_action")
+    data = f.system.simulate(2, 20, seed=2)
+    torch.testing.assert_close(g.run(data), f.run(data), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("where", ["saved", "filter_config", "config"])
+def test_a_daof_v2_checkpoint_of_the_removed_increment_form_is_refused_in_one_line(tmp_path, where):
+    """DAOF-v2's increment form was removed on 2026-12-07: a checkpoint of it is refused with one line
+    naming the file, the removal's date and its log entry (which exists)."""
+    path = tmp_path / "f.pt"
+    v2_checkpoint(path, where, "increment")
+    with pytest.raises(ValueError) as error:
+        load_filter(path)
+    message = str(error.value)
+    assert "\n" not in message and message.startswith(f"checkpoint {path}: "), message
+    log = "docs/log/2026-12-07-daof-v2-increment-form-removed.md"
+    assert "v2_action='increment' was removed on 2026-12-07 with DAOF-v2's increment form" in message
+    assert log in message and (Path(__file__).resolve().parents[1] / log).is_file()
+
+
+def test_make_filter_and_stored_configs_read_v2_action_as_a_retired_option():
+    """``v2_action`` is no field any more: the estimate form's value is ignored wherever a config comes
+    from (a mapping, fields, a stored config, a training config), any other value is refused in one line."""
+    assert "v2_action" not in {field.name for field in dataclasses.fields(FilterConfig)}
+    base = {"kind": "DAOF-v2", "system": "veh2dof", "window": 3, "num_cells": 8}
+    plain = FilterConfig(**base)
+    assert FilterConfig.from_dict(base | {"v2_action": "estimate"}) == plain
+    training = {"kind": "DAOF-v2", "system": "veh2dof", "window": 3, "network": {"num_cells": 8}}
+    assert FilterConfig.from_training(training | {"network": {"num_cells": 8, "v2_action": "estimate"}}) == plain
+    assert make_filter("DAOF-v2", system="veh2dof", window=3, num_cells=8, v2_action="estimate").config == plain
+    assert make_filter("DAOF-v2", plain, v2_action="estimate").config == plain
+    # a kind that never read it drops it whatever its value, as before
+    assert FilterConfig.from_dict({"kind": "SLF", "system": "veh2dof", "v2_action": "increment"}).kind == "SLF"
+    refusals = [
+        lambda: FilterConfig.from_dict(base | {"v2_action": "increment"}),
+        lambda: FilterConfig.from_training(training | {"network": {"v2_action": "increment"}}),
+        lambda: make_filter("DAOF-v2", system="veh2dof", v2_action="increment"),
+        lambda: make_filter("DAOF-v2", plain, v2_action="increment"),
+    ]
+    for refused in refusals:
+        with pytest.raises(ValueError, match=r"^v2_action='increment' was removed on 2026-12-07 ") as error:
+            refused()
+        assert "\n" not in str(error.value)
+    with pytest.raises(TypeError, match="v2_action"):  # the dataclass itself has no such field
+        FilterConfig(**base, v2_action="estimate")
 
 
 def test_load_filter_reads_best_and_final_files_with_plain_data_only(tmp_path):

@@ -74,7 +74,7 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     assert results["training"]["DAOF-v1"]["frames"] >= 1200
     # DAOF-v2 in the paper's form with the reward-spread critic, its default (daof/conf/filter/daof_v2.yaml)
     v2_config = json.loads((tmp_path / "daof-v2-N20-s1" / "run_config.json").read_text())
-    assert (v2_config["network"]["v2_action"], v2_config["network"]["critic_scale"]) == ("estimate", "reward")
+    assert (v2_config["kind"], v2_config["network"]["critic_scale"]) == ("DAOF-v2", "reward")
     assert f"report: {report / 'report.md'}" in out
     assert "DAOF-v1 RMSE ≤ 1.05× KF per state: " in out
     # the command in the report plans this run again

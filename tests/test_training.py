@@ -23,15 +23,12 @@ FILTERS = {"v1": "daof_v1", "v2": "daof_v2"}
 def tiny_cfg(name: str, out: Path, **changes):
     """A training config as ``python -m daof.train`` composes it, made tiny.
 
-    ``name`` "config.yaml" is DAOF (``version`` v1, the default, or v2: DAOF-v2 in its estimate form,
-    the paper's x̂ = π(h)), "slf.yaml" the SLF; ``system`` picks the system (default veh2dof).
+    ``name`` "config.yaml" is DAOF (``version`` v1, the default, or v2: DAOF-v2, the paper's x̂ = π(h)),
+    "slf.yaml" the SLF; ``system`` picks the system (default veh2dof).
     """
     version = changes.pop("version", "v1")
     filter_ = "slf" if name == "slf.yaml" else FILTERS[version]
-    overrides = [f"filter={filter_}", f"system={changes.pop('system', 'veh2dof')}"]
-    if filter_ == "daof_v2":
-        overrides.append("network.v2_action=estimate")
-    cfg = compose_config(overrides)
+    cfg = compose_config([f"filter={filter_}", f"system={changes.pop('system', 'veh2dof')}"])
     cfg.output_dir = str(out)
     cfg.logger.backend = "csv"
     cfg.network.num_cells = 16
@@ -130,6 +127,46 @@ def test_resume_refuses_another_run(tmp_path):
         other.resume(tmp_path / "nothing.pt")
 
 
+def test_an_old_v2_action_override_or_checkpoint_is_read_as_the_removed_option(tmp_path):
+    """``network.v2_action`` was removed on 2026-12-07 with DAOF-v2's increment form: its surviving value
+    ``estimate`` is ignored (an override of it, a checkpoint or run_config.json that names it: every run
+    before the removal names it, whatever its kind), ``increment`` refuses to resume in one line."""
+    import json
+
+    from daof.train.base import comparable_config
+
+    assert compose_config(["filter=daof_v2", "network.v2_action=estimate"]) == compose_config(["filter=daof_v2"])
+    assert compose_config(["filter=daof_v2", "~network.v2_action"]) == compose_config(["filter=daof_v2"])
+    cfg = tiny_cfg("config.yaml", tmp_path, version="v2", **{"collector.total_frames": 200})
+    DSACTTrainer(cfg).train()
+    blob = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    run_config = json.loads((tmp_path / "run_config.json").read_text())
+    assert "v2_action" not in run_config["network"]
+    now = OmegaConf.to_container(cfg, resolve=True)
+    for kind in ("DAOF-v1", "DAOF-v2", "SLF"):  # run_config.json before the removal: an experiment reuses it
+        old = {**now, "kind": kind, "network": {**now["network"], "v2_action": "estimate"}}
+        assert comparable_config(old) == comparable_config({**now, "kind": kind})
+    increment = {**now, "network": {**now["network"], "v2_action": "increment"}}
+    assert comparable_config(increment) != comparable_config(now)  # another filter: not reused
+    for value in ("estimate", "increment"):
+        path = tmp_path / f"{value}.pt"
+        network = {**blob["config"]["network"], "v2_action": value}
+        torch.save({**blob, "config": {**blob["config"], "network": network}}, path)
+        later = {"collector.total_frames": 400}
+        resumed = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / value, version="v2", **later))
+        if value == "estimate":
+            resumed.resume(path)
+            assert resumed.frames == 200
+            resumed._release_directory()
+            continue
+        with pytest.raises(ValueError) as error:
+            resumed.resume(path)
+        message = str(error.value)
+        assert "\n" not in message and message.startswith(f"checkpoint {path} cannot be resumed: "), message
+        assert "network.v2_action='increment' was removed on 2026-12-07" in message
+        assert "docs/log/2026-12-07-daof-v2-increment-form-removed.md" in message
+
+
 def test_slf_learns_and_resumes(tmp_path):
     """A few SLF batches already beat the raw yaw-rate measurement; resume continues the run.
 
@@ -193,15 +230,13 @@ def test_filter_and_system_groups_give_each_row_its_settings(tmp_path):
     assert [OmegaConf.select(v1, key) for key in settings] == ["zero_action", "quadratic", 500, "newest"]
     assert [OmegaConf.select(v2, key) for key in settings] == ["none", "reward_quadratic", 100, "uniform"]
     assert (v1.kind, v2.kind) == ("DAOF-v1", "DAOF-v2") and v2.loss.alpha_init == pytest.approx(math.e)
-    # every system trains DAOF-v2 in the paper's form with the reward-spread critic; veh14dof changes its budget
+    # every system trains DAOF-v2 in the paper's form (its only one) with the reward-spread critic; veh14dof
+    # changes its budget
     for s in ("veh2dof", "linear", "veh14dof"):
         cfg = compose_config(["filter=daof_v2", f"system={s}"])
-        assert (cfg.network.v2_action, cfg.network.critic_form, cfg.network.critic_scale, cfg.loss.gamma) == (
-            "estimate",
-            "reward_quadratic",
-            "reward",
-            0.0,
-        )
+        assert "v2_action" not in cfg.network
+        settings = (cfg.network.critic_form, cfg.network.critic_scale, cfg.loss.gamma)
+        assert settings == ("reward_quadratic", "reward", 0.0)
     e2 = compose_config(["filter=daof_v2", "system=veh14dof"])
     assert (e2.collector.episode_steps, e2.optim.utd, e2.include_controls) == (500, 0.125, False)
     assert compose_config(["filter=slf", "system=veh14dof"]).optim.epochs_per_batch == 8
@@ -224,6 +259,12 @@ def test_filter_and_system_groups_give_each_row_its_settings(tmp_path):
         ("network.critic_form=cubic", "network.critic_form='cubic' is not valid"),
         ("dropout.p_max=0.2", "DAOF trains on complete data"),
         ("optim.lr_final=0", "optim.lr_final must be in"),
+        (
+            "network.v2_action=increment",
+            "network.v2_action='increment' was removed on 2026-12-07 with DAOF-v2's increment form "
+            "(docs/log/2026-12-07-daof-v2-increment-form-removed.md)",
+        ),
+        ("+network.v2_action=jump", "network.v2_action='jump' was removed on 2026-12-07"),
     ],
 )
 def test_a_bad_config_is_refused_in_one_line_before_any_work(override, message):
@@ -238,7 +279,8 @@ def test_target_entropy_is_sized_from_the_error_scale(tmp_path):
         trainer = DSACTTrainer(tiny_cfg("config.yaml", tmp_path / version, version=version))
         raw = 0.4 * trainer.system.error_scale / trainer.filter.action_scale  # v1 acts in units of its bound
         cap = MAX_EXPLORATION_STD * (trainer.filter.high - trainer.filter.low) / 2
-        # v2's increments are below the cap; v1's residual bound (0.5 · √P⁺) is tighter than 0.4 error scales
+        # v2's noise (its estimate's units) is below the cap; v1's residual bound (0.5 · √P⁺) is tighter than
+        # 0.4 error scales
         assert (raw < cap).all() if version == "v2" else (raw > cap).all()
         expected = float(torch.log(torch.minimum(raw, cap) * math.sqrt(2 * math.pi * math.e)).sum())
         assert trainer.loss.target_entropy == pytest.approx(expected)

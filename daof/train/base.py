@@ -25,8 +25,10 @@ from daof.device import resolve_device
 from daof.envs.registry import make_system
 from daof.filters import UKF
 from daof.filters.learned import FilterConfig, LearnedFilter
+from daof.filters.learned.config import RETIRED_OPTIONS, retired_refusal
 from daof.io import atomic_write_text, writable_directory
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
+from daof.train.config import RETIRED_KEYS
 from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
 
@@ -47,7 +49,12 @@ RESUMABLE_CHANGES = (
 
 
 def comparable_config(config: dict) -> dict:
-    """A resolved config as flat ``a.b`` keys, without the keys a resumed run may change."""
+    """A resolved config as flat ``a.b`` keys, without the keys a resumed run may change.
+
+    A config written before an option was retired (``daof.train.config.RETIRED_KEYS``) compares without
+    it where it holds the surviving value or its kind never read it (``network.v2_action: estimate``);
+    another value stays, so that run is another config (a DAOF-v2 of the removed increment form).
+    """
 
     def flat(node, prefix=""):
         for key, value in node.items():
@@ -56,7 +63,12 @@ def comparable_config(config: dict) -> dict:
             else:
                 yield f"{prefix}{key}", value
 
-    return {k: v for k, v in flat(config) if k not in RESUMABLE_CHANGES}
+    flat_config = {k: v for k, v in flat(config) if k not in RESUMABLE_CHANGES}
+    for key, option in RETIRED_KEYS.items():
+        kinds, surviving = RETIRED_OPTIONS[option]
+        if key in flat_config and (flat_config[key] == surviving or config.get("kind") not in kinds):
+            del flat_config[key]
+    return flat_config
 
 
 #: what every training checkpoint holds (a trainer's own entries are checked as it restores them)
@@ -212,6 +224,10 @@ class FilterTrainer:
         blob = load_checkpoint(path)
         _check_resumable(blob, path)
         saved = comparable_config(blob["config"])
+        for key, option in RETIRED_KEYS.items():  # a run of a filter that no longer exists
+            if key in saved:
+                refusal = retired_refusal(option, saved[key], blob["config"].get("kind"), name=key)
+                raise ValueError(f"checkpoint {path} cannot be resumed: {refusal}")
         now = comparable_config(OmegaConf.to_container(self.cfg, resolve=True))
         if saved != now:
             diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))

@@ -25,9 +25,18 @@ from omegaconf.errors import OmegaConfBaseException
 
 from daof.config_checks import check_override_keys, one_line
 from daof.device import resolve_device
-from daof.filters.learned.config import FilterConfig
+from daof.filters.learned.config import RETIRED_OPTIONS, FilterConfig, retired_refusal
 
-__all__ = ["CONF_DIR", "FILTER_KINDS", "TrainConfig", "check_config", "compose_config", "register_configs"]
+__all__ = [
+    "CONF_DIR",
+    "FILTER_KINDS",
+    "RETIRED_KEYS",
+    "TrainConfig",
+    "check_config",
+    "compose_config",
+    "register_configs",
+    "retired_overrides",
+]
 
 #: the YAML side of the configuration (per filter kind, per system, per system and filter)
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -51,15 +60,13 @@ class Seeds:
 class Network:
     num_cells: int = FilterConfig.num_cells  # hidden width of actor and critics (the paper: 3 x 256 GELU)
     depth: int = FilterConfig.depth
-    # bound of an update: ± this · σ_t per state (DAOF-v1: σ_t = a UKF's √diag P⁺_t; incremental
-    # DAOF-v2: the std of the state's change per step in simulated data)
+    # DAOF-v1's bound of an update: ± this · σ_t per state, σ_t = a UKF's √diag P⁺_t
     correction_sigmas: float = FilterConfig.correction_sigmas
     startup_input: bool = FilterConfig.startup_input  # closed-loop networks read ρ_t = max(0, 1 − (t−1)/50)
     critic_form: str = "mlp"  # mlp | quadratic (V(h) − Σ p_i(h)(a_i − m_i(h))²) | reward_quadratic (γ = 0)
     critic_scale: str = "window"  # the value distribution's σ from h | reward: the quadratic reward's own spread
     critic_init: str = "own"  # each critic keeps its own init | resampled: TorchRL's re-sampled copies
     window_init: str = "uniform"  # PyTorch's init | newest: older frames' first-layer weights start at 0
-    v2_action: str = FilterConfig.v2_action  # DAOF-v2: x̂ = π(h) (estimate) | x̂ = x̂_{t−1} + b_t·π(h) (increment)
     missing_mask: bool = FilterConfig.missing_mask  # SLF: frames carry a 0/1 missing flag per measurement channel
     kalmannet_in_mult: int = FilterConfig.kalmannet_in_mult  # KalmanNet: width multiplier of its input layers
     kalmannet_out_mult: int = FilterConfig.kalmannet_out_mult  # KalmanNet: width multiplier of its gain layer
@@ -178,7 +185,6 @@ CHOICES = {
     "network.critic_scale": ("window", "reward"),
     "network.critic_init": ("own", "resampled"),
     "network.window_init": ("uniform", "newest"),
-    "network.v2_action": ("estimate", "increment"),
     "collector.feedback": ("sample", "mean"),
     "reward.weights": ("kalman", "constant"),
     "reward.baseline": ("none", "zero_action"),
@@ -186,6 +192,10 @@ CHOICES = {
     "logger.backend": ("csv", "wandb", ""),
     "logger.mode": ("offline", "online", "disabled"),
 }
+
+#: keys of retired filter options (``daof.filters.learned.RETIRED_OPTIONS``) an old command line may still
+#: name: an override with the surviving value is dropped, any other refused in one line (``retired_overrides``)
+RETIRED_KEYS = {"network.v2_action": "v2_action"}  # DAOF-v2's increment form, removed on 2026-12-07
 
 #: keys that must be ≥ 1 (counts) or > 0 (sizes and rates)
 AT_LEAST_ONE = (
@@ -294,13 +304,30 @@ def _group_error(error: Exception) -> str | None:
     return None
 
 
+def retired_overrides(overrides: list[str]) -> list[str]:
+    """``overrides`` without those of a ``RETIRED_KEYS`` key that hold its surviving value (or delete it);
+    one with another value is a ``ValueError`` line naming the removal and its log entry."""
+    kept = []
+    for item in overrides:
+        key, _, value = item.partition("=")
+        option = RETIRED_KEYS.get(key.lstrip("+~"))
+        if option is None:
+            kept.append(item)
+            continue
+        kinds, surviving = RETIRED_OPTIONS[option]
+        value = value.strip().strip("'\"")  # a string option (its surviving value is a string)
+        if not key.startswith("~") and value != surviving:
+            raise ValueError(retired_refusal(option, value, kinds[0], name=key.lstrip("+")))
+    return kept
+
+
 def compose_config(overrides: list[str] = ()) -> DictConfig:
     """The resolved-on-access training config for command-line style ``overrides`` (``["filter=slf", ...]``).
 
     Every problem Hydra or the schema finds (an unknown key or choice, a wrong type, an impossible
     value) is one ``ValueError`` line, raised before any work.
     """
-    overrides = list(overrides)
+    overrides = retired_overrides(list(overrides))
     check_override_keys(TrainConfig, overrides, "config", "python -m daof.train --cfg lists every key", GROUPS)
     # system parameters are free-form: ``overrides.mu=0.8`` adds or replaces one
     overrides = ["++" + o.lstrip("+") if o.lstrip("+~").startswith("overrides.") else o for o in overrides]

@@ -182,9 +182,9 @@ class DSACTTrainer(FilterTrainer):
         (``LearnedFilter.action_scale``: DAOF-v1 acts in units of its settled update bound).
         Each std is capped at ``MAX_EXPLORATION_STD`` times the action's half-range: an action in
         [low, high] has entropy below Σ log(high − low), and an unreachable target drives α up
-        without bound until the entropy term drowns the critic (veh14dof's increments:
-        docs/experiment2.md). ``loss.target_entropy`` set to a number overrides it (it must be
-        below that bound).
+        without bound until the entropy term drowns the critic (found with DAOF-v2's increment form on
+        veh14dof, a form removed on 2026-12-07: docs/log/2026-12-02-veh14dof-entropy-target-cap.md).
+        ``loss.target_entropy`` set to a number overrides it (it must be below that bound).
         """
         width = self.filter.high - self.filter.low  # the actor's action range (2 for an update in [−1, 1])
         fixed = self.cfg.loss.target_entropy

@@ -48,7 +48,7 @@ class FilterCritic(nn.Module):
     ``form="quadratic"`` makes the mean quadratic in the action, as in NAF (Gu et al., 2016):
     μ_k = V_k(h) − Σ_{i∈k} p_i(h)(a_i − m_i(h))², p_i = softplus > 0, with the raw scale from h
     alone. For a reward −Σ_i W_i(x_i − x̂_i)² with x̂ affine in a (DAOF-v1's update, DAOF-v2's
-    increment) and γ = 0 this is the exact form of Q, so the critic's argmax m(h) is never
+    estimate) and γ = 0 this is the exact form of Q, so the critic's argmax m(h) is never
     misranked by the shape of the fit; the sum over i∈k is over every state (one reward term)
     or over state k alone (a critic per state).
 

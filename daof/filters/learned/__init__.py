@@ -1,8 +1,7 @@
 """Learned filters as TensorDict modules: DAOF-v1, DAOF-v2 and the supervised SLF, one class each.
 
-* ``DAOFv2``: x̂_t = π(h_t^N)                          (model-free; ``DAOFv2Increment``, made by
-  ``v2_action="increment"``: x̂_t = x̂_{t−1} + b_t ⊙ π(h_t^N), the same function class with a bound
-  b_t sized from data)
+* ``DAOFv2``: x̂_t = π(h_t^N)                          (model-free; its increment form was removed on
+  2026-12-07: docs/log/2026-12-07-daof-v2-increment-form-removed.md)
 * ``DAOFv1``: x̂_t = f(x̂_{t−1}, u_{t−1}) + K̄_t ν_t + b_t ⊙ π(h_t^N)  (model predictor + the update
   of a UKF's mean gain K̄_t at step t + a learned residual, π ∈ [−1, 1]ⁿ, bounded by b_t =
   correction_sigmas · that UKF's √diag P⁺_t)
@@ -27,9 +26,9 @@ from collections.abc import Mapping
 from daof.envs.system import StochasticSystem
 from daof.filters.learned.base import KINDS, LearnedFilter, UpdateFilter, filter_class, plain_data
 from daof.filters.learned.checkpoint import load_filter
-from daof.filters.learned.config import MISSING_FILLS, RETIRED_OPTIONS, V2_ACTIONS, FilterConfig
+from daof.filters.learned.config import MISSING_FILLS, RETIRED_OPTIONS, FilterConfig, retire_options
 from daof.filters.learned.daof_v1 import DAOFv1
-from daof.filters.learned.daof_v2 import DAOFv2, DAOFv2Increment, increment_scale
+from daof.filters.learned.daof_v2 import DAOFv2
 from daof.filters.learned.kalmannet import KalmanNet
 from daof.filters.learned.network import SCHEDULE_STEPS, PolicyNet, hold_last_value, schedule_row, startup_feature
 from daof.filters.learned.slf import SLF
@@ -39,10 +38,8 @@ __all__ = [
     "MISSING_FILLS",
     "RETIRED_OPTIONS",
     "SCHEDULE_STEPS",
-    "V2_ACTIONS",
     "DAOFv1",
     "DAOFv2",
-    "DAOFv2Increment",
     "FilterConfig",
     "KalmanNet",
     "LearnedFilter",
@@ -51,7 +48,6 @@ __all__ = [
     "UpdateFilter",
     "filter_class",
     "hold_last_value",
-    "increment_scale",
     "load_filter",
     "make_filter",
     "plain_data",
@@ -73,6 +69,8 @@ def make_filter(
     ``fields`` set or replace fields. ``system``: the system object to filter (the config's
     ``system`` and ``scenario`` fields default to its name and scenario), or just its name; by
     default the config's, built by name and scenario. ``make_filter("SLF", system="veh2dof", window=5)``.
+    A retired option (``RETIRED_OPTIONS``) is read as a stored config's is (``retire_options``): its
+    surviving value is ignored, any other refused in one line (``v2_action="increment"``).
     """
     if isinstance(system, str):
         system, fields = None, {"system": system, **fields}
@@ -81,9 +79,10 @@ def make_filter(
     if isinstance(config, FilterConfig):
         if config.kind != kind:
             raise ValueError(f"make_filter({kind!r}) got a {config.kind} config")
+        fields = retire_options(kind, fields)
         config = dataclasses.replace(config, **fields) if fields else config
     else:
-        config = FilterConfig(**{**dict(config or {}), **fields, "kind": kind})
+        config = FilterConfig.from_dict({**dict(config or {}), **fields, "kind": kind})
     return filter_class(config)(config, system)
 
 

@@ -3,8 +3,8 @@
 ``LearnedFilter`` is a ``Filter`` (``run(data)``) and an ``nn.Module`` holding a ``PolicyNet``
 (window normaliser -> MLP -> (loc, log σ)). Its deterministic estimate is the squashed loc: by
 default the estimate itself, squashed onto the plausible state range. ``UpdateFilter`` is the base
-of the filters whose action is a bounded update b_t ⊙ a of a prediction instead (DAOF-v1, the
-incremental DAOF-v2). The filters themselves (``daof_v1``, ``daof_v2``, ``slf``) say what differs:
+of the filters whose action is a bounded update b_t ⊙ a of a prediction instead (DAOF-v1). The
+filters themselves (``daof_v1``, ``daof_v2``, ``slf``) say what differs:
 the prediction, the bound, the window's layout, the extra inputs.
 
 Each filter's window is described by its ``layout`` (a ``daof.envs.history.FrameLayout``): the env
@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["KINDS", "LearnedFilter", "UpdateFilter", "filter_class", "plain_data", "register"]
 
-#: filter kind -> its class (``register``); DAOF-v2's forms are picked by ``for_config``
+#: filter kind -> its class (``register``)
 KINDS: dict[str, type[LearnedFilter]] = {}
 
 #: an estimate within this fraction of the output range's width of one of its ends sits at a bound
@@ -59,7 +59,7 @@ def filter_class(config: FilterConfig) -> type[LearnedFilter]:
     """The class a config makes (``ValueError`` for an unknown kind)."""
     if config.kind not in KINDS:
         raise ValueError(f"unknown filter kind {config.kind!r}; valid: {sorted(KINDS)}")
-    return KINDS[config.kind].for_config(config)
+    return KINDS[config.kind]
 
 
 def plain_data(value, where: str = "extra"):
@@ -111,14 +111,8 @@ class LearnedFilter(nn.Module, Filter):
             return super().__new__(cls)
         target = filter_class(config)
         if not issubclass(target, cls):
-            form = f"a {config.kind} config (v2_action={config.v2_action!r})"
-            raise ValueError(f"{form} makes a {target.__name__}, not a {cls.__name__}")
+            raise ValueError(f"a {config.kind} config makes a {target.__name__}, not a {cls.__name__}")
         return super().__new__(target)
-
-    @classmethod
-    def for_config(cls, config: FilterConfig) -> type[LearnedFilter]:
-        """The class of ``config`` among this kind's forms (the kind's class itself unless it has several)."""
-        return cls
 
     @classmethod
     def check_config(cls, config: FilterConfig) -> None:
@@ -188,9 +182,6 @@ class LearnedFilter(nn.Module, Filter):
     def _output_affine(self) -> tuple[torch.Tensor, torch.Tensor] | None:
         """(mid, half) the deterministic action maps tanh(loc) with, or None for tanh(loc) itself."""
         return self.squash_affine()
-
-    def _fit_action(self, data) -> None:
-        """Fit what the action's scale needs from the normaliser's simulated data (nothing here)."""
 
     def _gap_fill(self, y: torch.Tensor, u_prev: torch.Tensor, u: torch.Tensor):
         """A function (t, x̂_{t−1}, frame part) -> frame part that rewrites missing channels, or None (hold)."""
@@ -263,7 +254,6 @@ class LearnedFilter(nn.Module, Filter):
             loc, scale = torch.cat([loc, loc.new_zeros(m)]), torch.cat([scale, scale.new_ones(m)])
         self.policy.input_loc.copy_(loc.repeat(self.config.window))
         self.policy.input_scale.copy_(scale.repeat(self.config.window))
-        self._fit_action(data)
 
     @torch.no_grad()
     def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
@@ -501,9 +491,9 @@ class UpdateFilter(LearnedFilter):
     """A filter whose action a ∈ [−1, 1]ⁿ is an update: x̂_t = p_t (+ K̄_t ν_t) + b_t ⊙ a, kept in the state range.
 
     p_t is ``predict(x̂_{t−1}, u_{t−1})``; b_t the per-step bound ``correction_scale`` (its
-    initial value from ``_initial_bound``, then fitted: DAOF-v1's by ``set_schedules``, the
-    incremental DAOF-v2's by ``fit_normalizer``). The deterministic filter also reads x̂_{t−1},
-    u_{t−1} and t.
+    initial value from ``_initial_bound``, then fitted: DAOF-v1's by ``set_schedules``). The
+    deterministic filter also reads x̂_{t−1}, u_{t−1} and t. DAOF-v1 is the only one since DAOF-v2's
+    increment form was removed (docs/log/2026-12-07-daof-v2-increment-form-removed.md).
     """
 
     acts_by_update = True

@@ -5,23 +5,40 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, fields
 
-__all__ = ["MISSING_FILLS", "RETIRED_OPTIONS", "V2_ACTIONS", "FilterConfig", "retire_options"]
+__all__ = ["MISSING_FILLS", "RETIRED_OPTIONS", "FilterConfig", "retire_options", "retired_refusal"]
 
-V2_ACTIONS = ("estimate", "increment")
 #: what a learned filter reads for a missing measurement channel (``LearnedFilter.missing_fill``)
 MISSING_FILLS = ("hold", "prediction")
 #: the versions of a training config without ``kind`` (recipes/*/config.yaml's ``version``)
 _VERSIONS = {"v1": "DAOF-v1", "v2": "DAOF-v2"}
-#: options measured not to help and deleted (docs/log/2026-12-07-retired-options.md): option ->
-#: (the kinds that read it, the value that survives). Old checkpoints and configs may still hold
-#: them; ``retire_options`` reads those.
+#: options measured not to help and deleted (docs/log/2026-12-07-retired-options.md,
+#: docs/log/2026-12-07-daof-v2-increment-form-removed.md): option -> (the kinds that read it, the
+#: value that survives). Old checkpoints and configs may still hold them; ``retire_options`` reads those.
 RETIRED_OPTIONS = {
     "correction_bound": (("DAOF-v1",), "posterior"),  # b_t = k · a UKF's √diag P⁺_t
     "reference_gain": (("DAOF-v1",), True),  # the update is K̄_t ν_t + the learned residual
     "innovation_input": (("DAOF-v1",), True),  # the network reads ν_t where its frame allows
     "window_padding": (("DAOF-v1", "DAOF-v2"), "same"),  # copies of the first frame (the SLF's always were)
+    "v2_action": (("DAOF-v2",), "estimate"),  # x̂_t = π(h_t); the increment form x̂_{t−1} + b_t ⊙ π(h_t) is gone
 }
 _RETIRED_LOG = "docs/log/2026-12-07-retired-options.md"
+#: the log entry of DAOF-v2's increment form, removed on 2026-12-07 (it was ``v2_action="increment"``)
+INCREMENT_FORM_LOG = "docs/log/2026-12-07-daof-v2-increment-form-removed.md"
+
+
+def retired_refusal(option: str, value, kind: str, name: str | None = None) -> str:
+    """The one line that refuses a retired ``option`` holding ``value``, not its surviving value, for ``kind``.
+
+    ``name``: what the option is called where it was given (a training key ``network.v2_action``).
+    """
+    name = name or option
+    if option == "v2_action":
+        return (
+            f"{name}={value!r} was removed on 2026-12-07 with DAOF-v2's increment form ({INCREMENT_FORM_LOG}): "
+            "a DAOF-v2 is always the estimate form x̂_t = π(h_t) now"
+        )
+    surviving = RETIRED_OPTIONS[option][1]
+    return f"{name}={value!r} was retired ({_RETIRED_LOG}): a {kind} now always has {option}={surviving!r}"
 
 
 def retire_options(kind: str, options: Mapping) -> dict:
@@ -29,14 +46,12 @@ def retire_options(kind: str, options: Mapping) -> dict:
 
     A retired option that ``kind`` never read (a DAOF-v2's ``correction_bound``, the SLF's
     ``window_padding``) is dropped whatever its value; one that ``kind`` read with another value than
-    the one that survives is refused with one ``ValueError`` line: the filter it describes no longer exists.
+    the one that survives is refused with one ``ValueError`` line (``retired_refusal``): the filter it
+    describes no longer exists (a DAOF-v2 with ``v2_action="increment"``).
     """
     for option, (kinds, surviving) in RETIRED_OPTIONS.items():
         if option in options and kind in kinds and options[option] != surviving:
-            raise ValueError(
-                f"{option}={options[option]!r} was retired ({_RETIRED_LOG}): "
-                f"a {kind} now always has {option}={surviving!r}"
-            )
+            raise ValueError(retired_refusal(option, options[option], kind))
     return {key: value for key, value in options.items() if key not in RETIRED_OPTIONS}
 
 
@@ -44,7 +59,7 @@ def retire_options(kind: str, options: Mapping) -> dict:
 class FilterConfig:
     """Everything needed to rebuild a learned filter (stored in its checkpoint).
 
-    ``kind`` (with ``v2_action`` for DAOF-v2) picks the class (``daof.filters.learned.filter_class``);
+    ``kind`` picks the class (``daof.filters.learned.filter_class``);
     each class refuses the options it cannot honour (``LearnedFilter.check_config``). Options
     measured not to help are gone (``RETIRED_OPTIONS``); ``FilterConfig.from_dict`` reads a stored
     config that still holds them.
@@ -62,7 +77,6 @@ class FilterConfig:
     #: error std √diag P⁺_t, the size of what is left to correct after a Kalman update (all three
     #: from ``set_schedules``). π(h_t) learns the residual of a gain-scheduled Kalman update
     #: (docs/linear_check.md). DAOF-v1 also reads ν_t / √diag S_t where its frame allows (``DAOFv1``).
-    #: The incremental DAOF-v2's bound is correction_sigmas · its data scale (``v2_action``).
     correction_sigmas: float = 4.0
     #: closed-loop filters also read the start-up feature ρ_t (see ``startup_feature``)
     startup_input: bool = True
@@ -70,12 +84,6 @@ class FilterConfig:
     #: ~1e-3; the exact one costs ~5x more at batch 1 on CPU (3 of them per estimate), see
     #: docs/benchmarks/learned.md. Checkpoints saved before the field existed are exact.
     gelu_approximate: str = "tanh"
-    #: DAOF-v2's action: "estimate" (the paper's x̂_t = π(h_t), squashed onto the plausible state
-    #: range) or "increment" (x̂_t = x̂_{t−1} + b_t ⊙ π(h_t), π ∈ [−1, 1]ⁿ; x̂_{t−1} is in h_t, so the
-    #: filters are the same but the action is sized like the error, not like the state's range).
-    #: b_t = correction_sigmas · max(σ_Δ, ρ_t · σ_0) from simulated training data: σ_Δ the std of
-    #: the state's change per step, σ_0 the std of the prior mean's error at t = 1. No model used.
-    v2_action: str = "estimate"
     #: SLF, DAOF-v2: each frame also carries one 0/1 flag per measurement channel, 1 where the
     #: channel is missing (its value then holds the last present one). Meant for filters trained
     #: through random gaps (``dropout`` in the recipes' configs, ``daof.envs.gaps``); docs/missing_data.md
@@ -92,8 +100,6 @@ class FilterConfig:
             raise ValueError(f"window must be an integer N >= 1, got {self.window!r}")
         if self.gelu_approximate not in ("tanh", "none"):
             raise ValueError(f"gelu_approximate must be 'tanh' or 'none', got {self.gelu_approximate!r}")
-        if self.v2_action not in V2_ACTIONS:
-            raise ValueError(f"v2_action must be one of {V2_ACTIONS}, got {self.v2_action!r}")
         cls.check_config(self)
 
     @classmethod
@@ -120,7 +126,7 @@ class FilterConfig:
             raise ValueError(f"training config has version {cfg.get('version')!r}; known: {sorted(_VERSIONS)}")
         net = retire_options(str(kind), dict(cfg.get("network") or {}))
         default = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
-        options = ("num_cells", "depth", "correction_sigmas", "startup_input", "v2_action", "missing_mask",
+        options = ("num_cells", "depth", "correction_sigmas", "startup_input", "missing_mask",
                    "kalmannet_in_mult", "kalmannet_out_mult")  # fmt: skip
         config = cls(
             kind=str(kind),
