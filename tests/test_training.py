@@ -466,7 +466,9 @@ def test_a_reward_quadratic_critic_has_the_rewards_own_curvature_and_trains(tmp_
         for a_i in (-0.5, 0.0, 0.5):
             td = batch.clone()
             td[key][..., i] = (mid + a_i * half)[i]
-            mus.append(trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)[0].squeeze(-1))
+            mu = trainer.loss._critic_mu_sigma(td, trainer.loss.qvalue_network_params)[0]
+            # a critic per state (DAOF-v2's default) holds each reward term apart: their sum is the reward's
+            mus.append(mu.sum(-1) if cfg.loss.critic_per_state else mu.squeeze(-1))
         second = mus[0] - 2 * mus[1] + mus[2]
         torch.testing.assert_close(second, -0.5 * (w * width.pow(2))[..., i].expand_as(second), rtol=1e-4, atol=1e-4)
 
@@ -536,7 +538,10 @@ def test_a_reward_quadratic_critic_needs_gamma_zero(tmp_path):
 
 def test_mean_feedback_needs_gamma_zero_and_trains(tmp_path):
     """``collector.feedback=mean`` is refused with γ > 0 and, at γ = 0, trains with clean windows in the buffer."""
-    cfg = tiny_cfg("config.yaml", tmp_path / "a", **{"collector.feedback": "mean", "loss.gamma": 0.5, "version": "v2"})
+    # a critic that allows γ > 0, so the feedback check is the one that speaks
+    mlp_critic = {"network.critic_form": "mlp", "network.critic_scale": "window", "loss.critic_per_state": False}
+    changes = {"collector.feedback": "mean", "loss.gamma": 0.5, "version": "v2", **mlp_critic}
+    cfg = tiny_cfg("config.yaml", tmp_path / "a", **changes)
     with pytest.raises(ValueError, match="feedback=mean keeps each action's value only with loss.gamma=0"):
         DSACTTrainer(cfg)
     changes = {"collector.feedback": "mean", "loss.gamma": 0.0, "version": "v2", "collector.total_frames": 300}
