@@ -86,9 +86,15 @@ def test_linear_check_numbers_in_the_readme():
     assert len(_ratios(r, "DAOF-v1")) == 3  # "on each of three training seeds"
     for seed in _ratios(r, "DAOF-v1"):
         assert all(abs(x - 1.0) < 1e-4 for x in seed)  # "the Kalman filter itself"
-    v2 = _ratios(r, "DAOF-v2")  # "3.4–4.2× / 1.6–1.8×"
-    assert [round(min(s[0] for s in v2), 1), round(max(s[0] for s in v2), 1)] == [3.4, 4.2]
-    assert [round(min(s[1] for s in v2), 1), round(max(s[1] for s in v2), 1)] == [1.6, 1.8]
+    v2 = [x for s in _ratios(r, "DAOF-v2") for x in s]  # "within 1.5–2.1 % of the Kalman filter"
+    assert [round(100 * (min(v2) - 1), 1), round(100 * (max(v2) - 1), 1)] == [1.5, 2.1]
+    slf = [x for s in _ratios(r, "SLF") for x in s]  # "closer than the SLF's regression"
+    assert max(v2) < min(slf)
+    learned = [n for n in r["filters"] if n.split(" (")[0] in ("SLF", "DAOF-v1", "DAOF-v2", "KalmanNet")]
+    nees = [v for n in learned for v in r["filters"][n]["nees"]]  # "NEES 0.98–1.04"
+    cover = [100 * v for n in learned for v in r["filters"][n]["coverage_2sigma"]]  # "94.9–95.6 %"
+    assert [round(min(nees), 2), round(max(nees), 2)] == [0.98, 1.04]
+    assert [round(min(cover), 1), round(max(cover), 1)] == [94.9, 95.6]
     assert all(0.995 <= x <= 1.005 for s in _ratios(r, "KalmanNet") for x in s)  # "within 0.5 %"
     assert {round(100 * (x - 1)) for s in _ratios(r, "SLF") for x in s} <= {7, 8, 9}  # "7–9 % above it"
 
