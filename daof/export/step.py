@@ -205,10 +205,7 @@ class KalmanNetStep(_FilterStep):
         carried = new._replace(prev_estimate=new.prev_estimate.clone())
         if self.head is None:
             return (estimate, *carried)
-        prior = new.prev_prior
-        innovation = torch.nan_to_num(measurement - self.filter.system.g(prior, u), nan=0.0)
-        features = [new.prev_measurement, innovation, estimate, estimate - prior, new.h_q, new.h_sigma, new.h_s]
-        std = self._std(features, step)
+        std = self._std([self.filter.step_features(measurement, u, estimate, new)], step)
         return (estimate, std, *carried)
 
     def initial_state(self, batch: int = 1) -> dict[str, torch.Tensor]:

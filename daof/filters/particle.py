@@ -245,9 +245,13 @@ class JointParameterPF(ParticleFilter):
         self.parameter_estimates: torch.Tensor | None = None
 
     def _run(self, y, u_prev, u):
-        return self._run_with_std(y, u_prev, u, spread=False)[0]
+        return self._joint(y, u_prev, u, spread=False)[0]
 
-    def _run_with_std(self, y, u_prev, u, spread: bool = True):
+    def _run_with_std(self, y, u_prev, u):
+        return self._joint(y, u_prev, u, spread=True)
+
+    def _joint(self, y, u_prev, u, spread: bool):
+        """The states' estimates (and spread); μ and B's estimates are kept in ``parameter_estimates``."""
         joint, std = self._chunks(y, u_prev, u, spread)
         d = self.system.state_dim
         self.parameter_estimates = joint[..., d:]

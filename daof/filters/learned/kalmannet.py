@@ -181,17 +181,21 @@ class KalmanNet(LearnedFilter):
         (a missing channel held), the innovation ν_t (0 where missing), x̂_t, its update x̂_t − x̂⁻_t, the GRU
         states after the step (the tracked Q, Σ and S) and ρ_t. The estimates are ``run``'s."""
         state = self.initial_state(y.shape[0], y.device, y.dtype)
-        s, estimates, features = self.system, [], []
+        estimates, features = [], []
         for t in self._steps(*y.shape[:2]):
-            estimate, new = self.step(state, y[:, t], u_prev[:, t], u[:, t])
-            prior = new.prev_prior
-            innovation = torch.nan_to_num(y[:, t] - s.g(prior, u[:, t]), nan=0.0)
-            parts = [new.prev_measurement, innovation, estimate, estimate - prior, new.h_q, new.h_sigma, new.h_s]
+            estimate, state = self.step(state, y[:, t], u_prev[:, t], u[:, t])
             estimates.append(estimate)
-            features.append(torch.cat(parts, -1))
-            state = new
+            features.append(self.step_features(y[:, t], u[:, t], estimate, state))
         estimates = torch.stack(estimates, 1)
         return estimates, torch.cat([torch.stack(features, 1), self._startup_column(y)], -1)
+
+    def step_features(self, measurement, control, estimate, new: KalmanNetState) -> torch.Tensor:
+        """The head's features of one step but ρ_t: y_t (a missing channel held), ν_t (0 where missing), x̂_t,
+        x̂_t − x̂⁻_t and the three GRU states, from the step's output ``estimate`` and state ``new``."""
+        prior = new.prev_prior
+        innovation = torch.nan_to_num(measurement - self.system.g(prior, control), nan=0.0)
+        parts = [new.prev_measurement, innovation, estimate, estimate - prior, new.h_q, new.h_sigma, new.h_s]
+        return torch.cat(parts, -1)
 
     # ----------------------------------------------------------------- as a TensorDict module
     def forward(self, measurement, prev_control, control, *state):
