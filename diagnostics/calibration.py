@@ -26,10 +26,10 @@ from daof.envs.registry import make_system
 from daof.evaluate import run_study
 from daof.evaluate.metrics import calibration
 from daof.evaluate.report import ReportSpec, write_report
-from daof.experiments.runner import checkpoint_fingerprint, classical_fingerprint
 from daof.filters import EKF, UKF, KalmanFilter, ParticleFilter, StationaryKalmanFilter
 from daof.filters.learned import LearnedFilter, load_filter
 from daof.filters.learned.uncertainty import head_path
+from daof.fingerprint import checkpoint_fingerprint, classical_fingerprint
 
 CLASSICAL = {
     "veh2dof": lambda s: {"EKF": EKF(s), "UKF": UKF(s), "PF": ParticleFilter(s, 1000, seed=1)},

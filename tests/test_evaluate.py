@@ -154,7 +154,7 @@ def test_experiment_tiny_profile_writes_a_complete_report(local_ray, tmp_path, c
     gaps = ["dropout.enabled=true", "dropout.blackout=[yaw_rate,0.4,0.2]"]  # a blackout that fits 60 steps
     experiment1(*args, *gaps)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 5
+    assert out.count("finished earlier, reusing") == 10  # 5 trainings and their uncertainty heads
     # 9 filters, and every candidate the reference check tried, with its doubled run (a fallback is a row too)
     assert out.count("reused finished result") == 9 + 2 * len(tried) - 1
     gappy = json.loads((report / "dropout" / "results.json").read_text())
@@ -196,8 +196,8 @@ def test_classical_filters_are_cached_under_their_code_and_settings():
     """Two filters built alike share a fingerprint; another particle count or seed gets its own."""
     from daof.envs import make_system
 
-    from daof.experiments.runner import classical_fingerprint
     from daof.filters import UKF, ParticleFilter
+    from daof.fingerprint import classical_fingerprint
 
     system = make_system("veh2dof")
     pf = classical_fingerprint(ParticleFilter(system, 100, seed=1), system)

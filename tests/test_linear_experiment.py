@@ -84,10 +84,11 @@ def test_linear_experiment_tiny_profile_reports_ratios_to_the_kalman_filter(tmp_
     assert {n: j.requested_config for n, j in first.jobs.items()} == {
         n: j.requested_config for n, j in again.jobs.items()
     }
-    # a second run reuses every training and every study result
+    # a second run reuses every training, every uncertainty head and every study result
     linear(*args)
     out = capsys.readouterr().out
-    assert out.count("finished earlier, reusing") == 4 and out.count("reused finished result") == 7
+    assert out.count("head: finished earlier, reusing") == 4 and out.count("finished earlier, reusing") == 8
+    assert out.count("reused finished result") == 7
 
 
 @pytest.mark.parametrize(

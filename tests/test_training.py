@@ -753,3 +753,20 @@ def test_a_split_critic_gives_the_whole_critics_values_and_the_actor_loss_its_gr
     torch.manual_seed(5)
     leaked = torch.autograd.grad(loss(batch)["loss_actor"], critics, allow_unused=True)
     assert all(g is None or not g.any() for g in leaked)  # the reused part is detached
+
+
+def test_the_ukf_validation_reference_is_computed_once_per_validation_set(tmp_path, monkeypatch):
+    """Runs side by side share the UKF's validation RMSE (a file beside them); another set computes its own."""
+    import daof.train.base as base
+
+    runs = []
+    real_run = base.UKF.run
+    monkeypatch.setattr(base.UKF, "run", lambda self, data: runs.append(1) or real_run(self, data))
+    trainer = SLFTrainer(tiny_cfg("slf.yaml", tmp_path / "a"))
+    first = trainer.reference_rmse()
+    expected = rmse_per_state(real_run(base.UKF(trainer.system), trainer.val_data), trainer.val_data["state"])
+    torch.testing.assert_close(torch.tensor(first["UKF"]), expected)
+    assert len(runs) == 1 and len(list((tmp_path / base.REFERENCE_CACHE).glob("ukf-*.json"))) == 1
+    assert SLFTrainer(tiny_cfg("slf.yaml", tmp_path / "b")).reference_rmse() == first and len(runs) == 1
+    other = SLFTrainer(tiny_cfg("slf.yaml", tmp_path / "c", **{"seeds.validation": 9101})).reference_rmse()
+    assert other != first and len(runs) == 2

@@ -189,20 +189,27 @@ def test_the_study_writes_the_calibration_fields_and_figure(lin, tmp_path):
     assert all(r.nees is None for r in without.results.values())
 
 
-def test_an_experiment_fits_a_head_once_per_checkpoint(tmp_path):
-    from daof.train.uncertainty import ensure_head
+def test_an_experiment_fits_a_head_once_per_checkpoint(tmp_path, monkeypatch):
+    from daof.experiments import jobs
+    from daof.experiments.jobs import HeadJob, TrainingJob, run_jobs
 
+    monkeypatch.setattr(jobs, "_ray_installed", lambda: False)  # its own process, one at a time (Ray: tiny profile)
     f = _tiny("SLF")
     f.save(tmp_path / "best.pt")
     (tmp_path / "run_config.json").write_text(json.dumps({"system": "linear", "seeds": {"train": 2}}))
-    settings = HeadSettings(runs=8, steps=40, epochs=2, num_cells=16)
+    job = HeadJob(TrainingJob("SLF", tmp_path, 100), HeadSettings(runs=8, steps=40, epochs=2, num_cells=16))
     messages = []
-    fits = lambda: sum("uncertainty head fitted" in m for m in messages)  # noqa: E731
-    path = ensure_head(tmp_path, settings, log=messages.append)
+    started = "uncertainty head: fitting, log " + str(tmp_path / "uncertainty.log")
+    fits = lambda: sum(m.endswith(started) for m in messages)  # noqa: E731
+    path = head_path(tmp_path / "best.pt")
+    assert not job.finished()
+    run_jobs([job], log=messages.append)
     first = path.read_bytes()
-    assert fits() == 1 and load_head(path).extra["seed"] == 424_242_002
-    assert ensure_head(tmp_path, settings, log=messages.append) == path and fits() == 1  # kept: fitted to this best.pt
-    assert path.read_bytes() == first
+    assert fits() == 1 and job.finished() and load_head(path).extra["seed"] == 424_242_002
+    assert "held-out runs (1): NEES" in (tmp_path / "uncertainty.log").read_text()
+    run_jobs([job], log=messages.append)
+    assert fits() == 1 and path.read_bytes() == first  # kept: fitted to this best.pt
     f.save(tmp_path / "best.pt", extra={"retrained": True})  # a new best.pt: its head is fitted again
-    ensure_head(tmp_path, settings, log=messages.append)
+    assert not job.finished()
+    run_jobs([job], log=messages.append)
     assert fits() == 2 and load_head(path, file_digest(tmp_path / "best.pt")) is not None

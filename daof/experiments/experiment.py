@@ -53,7 +53,7 @@ from daof.experiments.config import (
     compose_experiment,
     for_scenario,
 )
-from daof.experiments.jobs import TrainingJob
+from daof.experiments.jobs import HeadJob, TrainingJob
 from daof.experiments.reference import ReferenceChoice, choose_reference
 from daof.experiments.runner import (
     command_line,
@@ -64,7 +64,7 @@ from daof.experiments.runner import (
     validation_references,
 )
 from daof.io import writable_directory
-from daof.train.uncertainty import HeadSettings, ensure_head
+from daof.train.uncertainty import HeadSettings
 
 __all__ = ["Plan", "ScenarioPlan", "main", "plan_experiment", "run_experiment"]
 
@@ -331,11 +331,12 @@ def choose_scenario_reference(sp: ScenarioPlan, study, classical: dict, fallback
 
 
 # ----------------------------------------------------------------------------------------- running
-def fit_heads(jobs: dict, settings: HeadSettings) -> None:
-    """Every trained filter's uncertainty head (``daof.train.uncertainty.ensure_head``): fitted once per checkpoint."""
+def fit_heads(jobs: dict, settings: HeadSettings, cfg) -> None:
+    """Every trained filter's uncertainty head (a ``HeadJob`` each, in parallel like the trainings):
+    fitted once per checkpoint."""
     print(f"   uncertainty heads ({settings.runs} runs × {settings.steps} steps; kept if fitted to this best.pt)")
-    for job in jobs.values():
-        ensure_head(job.output_dir, settings)
+    trainings = {job.output_dir: job for job in jobs.values()}.values()
+    train([HeadJob(job, settings) for job in trainings], parallel=cfg.parallel_jobs, address=cfg.ray.address)
 
 
 def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
@@ -343,7 +344,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
     cfg, p, scenario = sp.cfg, sp.profile, sp.scenario
     title = cfg.title.format(scenario=scenario)
     if int(p.uncertainty_runs) > 0:
-        fit_heads(sp.jobs, HeadSettings(runs=int(p.uncertainty_runs), steps=int(p.steps)))
+        fit_heads(sp.jobs, HeadSettings(runs=int(p.uncertainty_runs), steps=int(p.steps)), cfg)
     print(f"2/3 Monte Carlo study ({scenario})")
     system = study_system(cfg, p)
     classical = classical_filters(cfg, p, system)

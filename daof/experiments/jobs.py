@@ -9,6 +9,7 @@ threads and logger: ``daof.train.base.RESUMABLE_CHANGES``), so a results root ca
 copied and is still reused. A directory from another config is moved aside to
 ``<dir>.stale-<n>`` and the job starts fresh. A trainer holds a lock on its directory
 (``daof.train.lock``), so a second trainer never runs in it, whichever process or machine starts it.
+A ``HeadJob`` fits a finished training's uncertainty head the same way, after the trainings.
 
 The unfinished jobs run as Ray tasks (``daof.experiments.ray_jobs``): on a local Ray of ``parallel``
 CPUs (None: every core), one training per CPU, or on the cluster at ``address``. Without the
@@ -33,16 +34,19 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from daof.experiments.training_process import launch, resumes, stop
+from daof.filters.learned.uncertainty import head_path, load_head
 from daof.io import safe_load
 from daof.train.base import PROGRESS, RUN_CONFIG, comparable_config
 from daof.train.config import compose_config
+from daof.train.uncertainty import HeadSettings, head_arguments, head_fitted
 
-__all__ = ["TrainingJob", "run_jobs"]
+__all__ = ["HeadJob", "TrainingJob", "run_jobs"]
 
 
 @dataclass
@@ -58,6 +62,13 @@ class TrainingJob:
     launcher: list[str] | None = None
     #: folders the training must import from (a system of the user's code), put first on its PYTHONPATH
     pythonpath: list[str] = field(default_factory=list)
+    #: what its process does, and the file in ``output_dir`` that holds its output
+    doing: ClassVar[str] = "training"
+    log_name: ClassVar[str] = "train.log"
+
+    @property
+    def log_path(self) -> Path:
+        return self.output_dir / self.log_name
 
     @property
     def summary_path(self) -> Path:
@@ -132,6 +143,48 @@ class TrainingJob:
         """``base`` (the process environment) with ``pythonpath`` first on ``PYTHONPATH``, output unbuffered."""
         paths = [*self.pythonpath, *([base["PYTHONPATH"]] if base.get("PYTHONPATH") else [])]
         return {**base, "PYTHONUNBUFFERED": "1", **({"PYTHONPATH": os.pathsep.join(paths)} if paths else {})}
+
+
+@dataclass
+class HeadJob:
+    """Fitting the uncertainty head of a finished training: ``python -m daof.train.uncertainty RUN_DIR``.
+
+    Run by ``run_jobs`` like a training (in parallel on Ray), with its output in ``uncertainty.log``;
+    finished when the head beside ``best.pt`` was fitted to that very file.
+    """
+
+    training: TrainingJob
+    settings: HeadSettings
+    doing: ClassVar[str] = "fitting"
+    log_name: ClassVar[str] = "uncertainty.log"
+    requested_config: ClassVar[dict] = {}  # nothing to pin: the head's settings are its arguments
+
+    @property
+    def name(self) -> str:
+        return f"{self.training.name} uncertainty head"
+
+    @property
+    def output_dir(self) -> Path:
+        return self.training.output_dir
+
+    @property
+    def log_path(self) -> Path:
+        return self.output_dir / self.log_name
+
+    def finished(self) -> bool:
+        return head_fitted(self.output_dir / "best.pt")
+
+    def set_aside_if_stale(self) -> None:
+        return None  # a head of another best.pt is fitted again in place
+
+    def command(self) -> list[str]:
+        return [sys.executable, "-m", "daof.train.uncertainty", str(self.output_dir), *head_arguments(self.settings)]
+
+    def environment(self, base: dict[str, str]) -> dict[str, str]:
+        return self.training.environment(base)  # the training's system code, if it is the user's
+
+    def summary(self) -> dict:
+        return {"wall_s": load_head(head_path(self.output_dir / "best.pt")).extra.get("wall_s")}
 
 
 def _count(n: float) -> str:
@@ -246,7 +299,7 @@ def _sigterm_noted():
 
 
 def _ended(job: TrainingJob, exit_code: int | str, log) -> bool:
-    """Log how a training ended (``exit_code``: its exit code, or why its task failed); whether it succeeded."""
+    """Log how a job ended (``exit_code``: its exit code, or why its task failed); whether it succeeded."""
     if exit_code == 0 and job.finished():
         log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
         return True
@@ -254,7 +307,7 @@ def _ended(job: TrainingJob, exit_code: int | str, log) -> bool:
         why = "exit 0, but no summary or readable best.pt"
     else:
         why = f"exit {exit_code}" if isinstance(exit_code, int) else exit_code
-    log(f"  {job.name}: FAILED ({why}); see {job.output_dir / 'train.log'}")
+    log(f"  {job.name}: FAILED ({why}); see {job.log_path}")
     return False
 
 
@@ -277,7 +330,7 @@ def run_jobs(
     if not pending:
         return
     running: dict[str, TrainingJob] = {}
-    failed = []
+    failed: list[str] = []
     status = _Status(log, status_every)
     # SIGTERM's handler is set after Ray starts: Ray's own would end this process without a cleanup
     with _events(pending, parallel, address, log) as events, _sigterm_noted() as sigterm, contextlib.closing(events):
@@ -290,7 +343,7 @@ def run_jobs(
                     if what == "started":
                         running[job.name] = job
                         resuming = " (resuming)" if detail else ""
-                        log(f"  {job.name}: training{resuming}, log {job.output_dir / 'train.log'}")
+                        log(f"  {job.name}: {job.doing}{resuming}, log {job.log_path}")
                     else:
                         running.pop(job.name, None)
                         if not _ended(job, detail, log):
@@ -299,4 +352,4 @@ def run_jobs(
         finally:
             status.close()
     if failed:
-        raise RuntimeError(f"training failed for {failed}; rerun the same command to resume")
+        raise RuntimeError(f"{pending[0].doing} failed for {failed}; rerun the same command to resume")

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from daof.evaluate.study import Study, run_study
-from daof.experiments.runner import classical_fingerprint
+from daof.fingerprint import classical_fingerprint
 
 __all__ = ["Candidate", "ReferenceChoice", "best_filter", "choose_reference", "doubled_change"]
 

@@ -9,8 +9,6 @@ training) ends the run with one line naming the problem (``SystemExit``), not a 
 from __future__ import annotations
 
 import copy
-import hashlib
-import inspect
 import json
 import shlex
 from collections.abc import Callable, Sequence
@@ -21,12 +19,11 @@ import torch
 from daof.device import resolve_device
 from daof.evaluate.study import ORACLE, Study, run_study
 from daof.experiments.jobs import TrainingJob, run_jobs
-from daof.filters.base import Filter
 from daof.filters.learned import load_filter
 from daof.filters.learned.uncertainty import head_path
+from daof.fingerprint import checkpoint_fingerprint, classical_fingerprint
 
 __all__ = [
-    "checkpoint_fingerprint",
     "command_line",
     "learning_curves",
     "load_trained",
@@ -46,7 +43,7 @@ def command_line(program: str, *pinned: str, given: Sequence[str] = (), drop: Se
 
 
 def train(jobs: Sequence[TrainingJob], parallel: int | None = None, address: str | None = None, log=print) -> None:
-    """``run_jobs``; a failed training exits with one line naming it and its log instead of a traceback."""
+    """``run_jobs``; a failed job (a training, a head) exits with one line naming it and its log, not a traceback."""
     try:
         run_jobs(list(jobs), parallel=parallel, address=address, log=log)
     except RuntimeError as error:
@@ -178,19 +175,3 @@ def training_costs(jobs: dict[str, TrainingJob]) -> dict[str, dict]:
         name: {k: job.summary().get(k) for k in ("frames", "updates", "wall_s", "threads")}
         for name, job in jobs.items()
     }
-
-
-def classical_fingerprint(filt, system) -> str:
-    """A short digest of the modules of a classical filter, of ``Filter`` and of its system, and of its settings."""
-    sources = {inspect.getsourcefile(type(filt)), inspect.getsourcefile(type(system)), inspect.getsourcefile(Filter)}
-    settings = sorted((k, v) for k, v in vars(filt).items() if isinstance(v, (bool, int, float, str)))
-    return checkpoint_fingerprint(sources) + hashlib.sha1(repr(settings).encode()).hexdigest()[:6]
-
-
-def checkpoint_fingerprint(paths) -> str:
-    """A short digest of the given files' bytes: a study cache keyed by it is never stale after retraining."""
-    digest = hashlib.sha1()
-    for path in sorted(Path(p) for p in paths):
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()[:10]

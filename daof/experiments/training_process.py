@@ -26,9 +26,9 @@ def _die_with_parent() -> None:
 
 
 def launch(job) -> subprocess.Popen:
-    """Start ``job``'s training (a ``TrainingJob``) in its run directory's ``train.log`` (appended to)."""
+    """Start ``job``'s process (a ``TrainingJob`` or ``HeadJob``) with its output appended to ``job.log_path``."""
     job.output_dir.mkdir(parents=True, exist_ok=True)
-    with (job.output_dir / "train.log").open("ab") as log:  # the child keeps its own copy of the file
+    with job.log_path.open("ab") as log:  # the child keeps its own copy of the file
         return subprocess.Popen(
             job.command(),
             stdout=log,

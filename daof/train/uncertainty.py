@@ -31,7 +31,16 @@ from daof.evaluate.metrics import calibration
 from daof.filters.learned import LearnedFilter, load_filter
 from daof.filters.learned.uncertainty import UncertaintyHead, file_digest, head_path, load_head, save_head
 
-__all__ = ["HEAD_SEED", "HeadSettings", "ensure_head", "fit_head", "gaussian_nll", "main", "simulate_features"]
+__all__ = [
+    "HEAD_SEED",
+    "HeadSettings",
+    "fit_head",
+    "gaussian_nll",
+    "head_arguments",
+    "head_fitted",
+    "main",
+    "simulate_features",
+]
 
 #: the head's data seed is this plus the run's training seed: disjoint from the training batches
 #: (seed · 1,000,003 + batch), the normaliser (7,000,001), validation (9100) and evaluation (20261122 + k)
@@ -161,28 +170,25 @@ def load_frozen(checkpoint: Path) -> tuple[LearnedFilter, dict]:
     return filt, config
 
 
-def ensure_head(run_dir: Path, settings: HeadSettings, log=print) -> Path:
-    """The head of ``run_dir/best.pt``: kept if one fitted to that very file is there, else fitted now.
+def head_fitted(checkpoint: Path) -> bool:
+    """Whether the head beside ``checkpoint`` (``head_path``) was fitted to that very file.
 
-    What an experiment runs after its trainings; a head is not refitted for other ``settings`` (delete
-    its file, or run ``python -m daof.train.uncertainty``, to fit it again).
+    An experiment fits a head where this is false (``daof.experiments.jobs.HeadJob``); a head is not
+    refitted for other settings (delete its file, or run ``python -m daof.train.uncertainty``).
     """
-    checkpoint = Path(run_dir) / "best.pt"
     out = head_path(checkpoint)
-    digest = file_digest(checkpoint)
-    if out.is_file():
-        try:
-            load_head(out, digest)
-            return out
-        except ValueError:
-            pass  # fitted to an earlier best.pt, or not a head: fit it again
-    filt, config = load_frozen(checkpoint)
-    seed = HEAD_SEED + int(config.get("seeds", {}).get("train", 0))
-    head, record = fit_head(filt, settings, seed, log=log)
-    save_head(head, out, digest, record)
-    nees = ", ".join(f"{v:.3f}" for v in record["held_out_nees"])
-    log(f"  {run_dir}: uncertainty head fitted in {record['wall_s']} s (held-out NEES [{nees}])")
-    return out
+    if not out.is_file():
+        return False
+    try:
+        load_head(out, file_digest(checkpoint))
+    except ValueError:
+        return False  # fitted to an earlier best.pt, or not a head
+    return True
+
+
+def head_arguments(settings: HeadSettings) -> list[str]:
+    """``settings`` as the options of ``python -m daof.train.uncertainty``."""
+    return [f"--{key.replace('_', '-')}={value}" for key, value in asdict(settings).items()]
 
 
 def main(argv: list[str] | None = None) -> None:
