@@ -229,13 +229,13 @@ def run_study(
         est = est.to(data.device)
         results[name], estimates[name] = result, est
         rmse = ", ".join(f"{v:.4g}" for v in result.rmse)
-        cost = f"{result.cost_ms:.3f} ms" if result.cost_ms is not None else "n/a"
+        cost = f", cost {result.cost_ms:.3f} ms/estimate" if result.cost_ms is not None else ""
         calibrated = ""
         if result.nees is not None:
             nees = ", ".join(f"{v:.3g}" for v in result.nees)
             cover = ", ".join(f"{100 * v:.1f} %" for v in result.coverage_2sigma)
             calibrated = f"; NEES [{nees}], ±2σ coverage [{cover}] ({result.std_source})"
-        log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}], cost {cost}/estimate, {result.wall_s:.1f} s{calibrated}")
+        log(f"[{i}/{len(filters)}] {name}: RMSE [{rmse}]{cost}, {result.wall_s:.1f} s{calibrated}")
         if path is not None:
             atomic_save({"key": filter_key, "result": asdict(result), "estimates": est}, path)
     _add_oracle_metrics(results, reference, estimates, system)
