@@ -76,9 +76,10 @@ def test_threads_restores_the_count_when_the_body_fails():
 def test_throughput_returns_the_runs_estimates_and_its_wall_time():
     data = _data(runs=4, steps=25)
     filt = SleepyFilter(4e-4)
-    rate, estimates, wall = throughput(filt, data)
+    rate, estimates, std, wall = throughput(filt, data)
     assert filt.calls == [(4, 25, torch.get_num_threads())]  # one run of the whole batch
-    assert torch.equal(estimates, torch.ones(4, 25, 2))
+    assert torch.equal(estimates, torch.ones(4, 25, 2)) and std is None
+    assert throughput(filt, data, with_std=True)[2] is None  # a filter without a std: the same shape
     assert wall >= 25 * 4e-4
     assert rate == pytest.approx(data.numel() / wall)
 

@@ -140,8 +140,7 @@ def _evaluate_one(
 ) -> tuple[FilterResult, torch.Tensor]:
     # one pass gives the estimates and, with ``calibrate``, the std beside them (``run_with_std``'s
     # estimates are ``run``'s): the throughput then includes reading the std out
-    rate, out, wall = _with_progress(filt, data, name, lambda f, d: throughput(f, d, with_std=calibrate))
-    estimates, std = out if calibrate else (out, None)
+    rate, estimates, std, wall = _with_progress(filt, data, name, lambda f, d: throughput(f, d, with_std=calibrate))
     truth = data["state"]
     # the stats of the study's run: timing at batch 1 below runs the filter again
     stats = dict(getattr(filt, "stats", {}) or {})

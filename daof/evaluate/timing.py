@@ -50,18 +50,14 @@ def cost_per_estimate(
 
 
 def throughput(filt, data: TensorDictBase, with_std: bool = False):
-    """(estimates per second at batch = runs, the estimates, wall seconds) from one full run.
+    """(estimates per second at batch = runs, the estimates, their std, wall seconds) from one full run.
 
-    ``with_std``: the run is ``run_with_std`` where the filter has one, and the second item is
-    (estimates, std or None).
+    ``with_std``: the run is ``run_with_std`` where the filter has one; the std is None otherwise.
     Timed by hand rather than with ``torch.utils.benchmark.Timer``: the study needs the estimates
     of this very run, and a Timer would run the whole study's filtering more than once.
     """
     start = time.perf_counter()
     run_with_std = getattr(filt, "run_with_std", None) if with_std else None
-    if run_with_std is not None:
-        out = run_with_std(data)
-    else:
-        out = (filt.run(data), None) if with_std else filt.run(data)
+    estimates, std = run_with_std(data) if run_with_std is not None else (filt.run(data), None)
     wall = time.perf_counter() - start
-    return data.numel() / wall, out, wall
+    return data.numel() / wall, estimates, std, wall

@@ -193,6 +193,8 @@ def _count(n: float) -> str:
 
 def progress_line(job: TrainingJob) -> str:
     """Where a running training is: frames of its budget, wall time, ETA, latest validation RMSE."""
+    if not isinstance(job, TrainingJob):
+        return job.doing  # a head's fit has no progress file of its own
     try:
         p = json.loads((job.output_dir / PROGRESS).read_text())
     except (OSError, ValueError):
