@@ -10,6 +10,7 @@ import hashlib
 import inspect
 from pathlib import Path
 
+import torch
 from tensordict import TensorDictBase
 
 from daof.filters.base import Filter
@@ -39,5 +40,5 @@ def data_fingerprint(data: TensorDictBase) -> str:
     for key in sorted(data.keys(include_nested=True, leaves_only=True), key=str):
         value = data.get(key).detach().cpu().contiguous()
         digest.update(f"{key}{tuple(value.shape)}{value.dtype}".encode())
-        digest.update((value.double() if value.is_floating_point() else value).numpy().tobytes())
+        digest.update(value.view(-1).view(torch.uint8).numpy().tobytes())  # its bytes, whatever the dtype
     return digest.hexdigest()[:12]

@@ -62,8 +62,9 @@ class TrainingJob:
     launcher: list[str] | None = None
     #: folders the training must import from (a system of the user's code), put first on its PYTHONPATH
     pythonpath: list[str] = field(default_factory=list)
-    #: what its process does, and the file in ``output_dir`` that holds its output
+    #: what its process does, what it leaves when it succeeds, and the file in ``output_dir`` of its output
     doing: ClassVar[str] = "training"
+    output: ClassVar[str] = "a summary and a readable best.pt"
     log_name: ClassVar[str] = "train.log"
 
     @property
@@ -139,6 +140,9 @@ class TrainingJob:
     def summary(self) -> dict:
         return json.loads(self.summary_path.read_text())
 
+    def progress(self) -> str:
+        return progress_line(self)
+
     def environment(self, base: dict[str, str]) -> dict[str, str]:
         """``base`` (the process environment) with ``pythonpath`` first on ``PYTHONPATH``, output unbuffered."""
         paths = [*self.pythonpath, *([base["PYTHONPATH"]] if base.get("PYTHONPATH") else [])]
@@ -156,6 +160,7 @@ class HeadJob:
     training: TrainingJob
     settings: HeadSettings
     doing: ClassVar[str] = "fitting"
+    output: ClassVar[str] = "head fitted to best.pt"
     log_name: ClassVar[str] = "uncertainty.log"
     requested_config: ClassVar[dict] = {}  # nothing to pin: the head's settings are its arguments
 
@@ -186,6 +191,9 @@ class HeadJob:
     def summary(self) -> dict:
         return {"wall_s": load_head(head_path(self.output_dir / "best.pt")).extra.get("wall_s")}
 
+    def progress(self) -> str:
+        return self.doing  # a head's fit writes no progress file
+
 
 def _count(n: float) -> str:
     return f"{n / 1e6:.3g}M" if n >= 1e6 else f"{n / 1e3:.3g}k" if n >= 1e3 else f"{n:g}"
@@ -193,8 +201,6 @@ def _count(n: float) -> str:
 
 def progress_line(job: TrainingJob) -> str:
     """Where a running training is: frames of its budget, wall time, ETA, latest validation RMSE."""
-    if not isinstance(job, TrainingJob):
-        return job.doing  # a head's fit has no progress file of its own
     try:
         p = json.loads((job.output_dir / PROGRESS).read_text())
     except (OSError, ValueError):
@@ -223,11 +229,11 @@ class _Status:
             for job in running:
                 if job.name not in self.bars:
                     self.bars[job.name] = tqdm(total=0, bar_format="{desc}", position=len(self.bars))
-                self.bars[job.name].set_description_str(f"  {job.name}: {progress_line(job)}")
+                self.bars[job.name].set_description_str(f"  {job.name}: {job.progress()}")
         elif running and time.monotonic() - self.last > self.every:
             self.last = time.monotonic()
             for job in running:
-                self.log(f"  {job.name}: {progress_line(job)}")
+                self.log(f"  {job.name}: {job.progress()}")
 
     def close(self) -> None:
         for bar in self.bars.values():
@@ -306,7 +312,7 @@ def _ended(job: TrainingJob, exit_code: int | str, log) -> bool:
         log(f"  {job.name}: done ({job.summary().get('wall_s')} s)")
         return True
     if exit_code == 0:
-        why = "exit 0, but no summary or readable best.pt"
+        why = f"exit 0, but no {job.output}"
     else:
         why = f"exit {exit_code}" if isinstance(exit_code, int) else exit_code
     log(f"  {job.name}: FAILED ({why}); see {job.log_path}")

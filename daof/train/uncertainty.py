@@ -188,7 +188,12 @@ def head_fitted(checkpoint: Path) -> bool:
 
 def head_arguments(settings: HeadSettings) -> list[str]:
     """``settings`` as the options of ``python -m daof.train.uncertainty``."""
-    return [f"--{key.replace('_', '-')}={value}" for key, value in asdict(settings).items()]
+    return [f"{_option(key)}={value}" for key, value in asdict(settings).items()]
+
+
+def _option(key: str) -> str:
+    """The command-line option of a ``HeadSettings`` field."""
+    return f"--{key.replace('_', '-')}"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -200,7 +205,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     defaults = HeadSettings()
     for key, value in asdict(defaults).items():
-        parser.add_argument(f"--{key.replace('_', '-')}", type=type(value), default=value)
+        parser.add_argument(_option(key), type=type(value), default=value)
     args = parser.parse_args(argv)
     checkpoint = args.run_dir / args.checkpoint
     try:
