@@ -115,6 +115,7 @@ def test_experiment_tiny_profile_writes_a_complete_report(local_ray, tmp_path, c
         assert (report / name).is_file(), name
     results = json.loads((report / "results.json").read_text())
     expected = {"EKF", "UKF", "PF", "PF-oracle", "SLF", "DAOF-v1", "DAOF-v2", "KalmanNet", "DAOF-v1 (N=1)"}
+    expected |= {"DAOF-v1 (paper form)"}
     # the reference is checked: PF-oracle, and only if it fails its check the fallback PF-proposal
     check = results["reference_check"]
     tried = [c["name"] for c in check["candidates"]]
@@ -295,14 +296,15 @@ def test_each_scenario_trains_on_its_own_data_in_its_own_directory(tmp_path):
     dirs = set()
     for sc, sp in plan.scenarios.items():
         assert Path(sp.cfg.output_root) == tmp_path / sc and Path(sp.cfg.report_dir) == tmp_path / sc / "report"
-        assert list(sp.jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)", "KalmanNet"]
-        assert sp.windows == {"SLF": 20, "DAOF-v2": 20, "DAOF-v1": 20, "DAOF-v1 (N=1)": 1, "KalmanNet": 20}
+        paper = "DAOF-v1 (paper form)"
+        assert list(sp.jobs) == ["SLF", "DAOF-v2", "DAOF-v1", "DAOF-v1 (N=1)", paper, "KalmanNet"]
+        assert sp.windows == {"SLF": 20, "DAOF-v2": 20, "DAOF-v1": 20, "DAOF-v1 (N=1)": 1, paper: 20, "KalmanNet": 20}
         for name, job in sp.jobs.items():
             assert f"scenario={sc}" in job.overrides and job.name == f"{name} [{sc}]"
             assert f"window={sp.windows[name]}" in job.overrides
             assert job.requested_config["scenario"] == sc
             dirs.add(job.output_dir)
-    assert len(dirs) == 15 and Path(plan.cfg.combined_report_dir) == tmp_path / "report"
+    assert len(dirs) == 18 and Path(plan.cfg.combined_report_dir) == tmp_path / "report"
     # the default is one scenario, in the directory the README names
     single = plan_experiment("veh2dof", [])
     assert list(single.scenarios) == ["nominal"] and single.cfg.report_dir == "runs/experiment1/quick/nominal/report"

@@ -159,6 +159,34 @@ def test_v1_update_is_the_mean_gain_update_plus_the_bounded_residual(system):
     torch.testing.assert_close(f.run(data), rolled, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("system", ["linear", "veh2dof"])
+def test_v1_paper_form_learns_the_whole_update_within_the_prior_bound(system, tmp_path):
+    """reference_gain=False: x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ a_t, b_t = k · max(√diag P⁻_t, error_scale), no K̄_t
+    table; it saves and loads as itself, and another kind or a contradicting checkpoint is refused."""
+    f = small("DAOF-v1", system=system, reference_gain=False, correction_sigmas=3.0)
+    assert not hasattr(f, "reference_gain")
+    schedule = ukf_schedule(f.system, seed=3, runs=4)
+    f.set_schedules(schedule)
+    torch.testing.assert_close(f.correction_scale, 3.0 * torch.maximum(schedule["prediction"], f.error_scale))
+    env = make_env(system, batch_size=3, window=4, seed=4, max_steps=30)
+    with torch.no_grad():
+        td = env.rollout(30, exploration_policy(f), break_when_any_done=False)
+    s, rows = f.system, td["step"][..., 0].clamp(max=SCHEDULE_STEPS) - 1
+    prediction = s.f(td["prev_estimate"], td["prev_control"])
+    expected = (prediction + f.correction_scale[rows] * td["correction"]).clamp(f.state_low, f.state_high)
+    torch.testing.assert_close(td["action"], expected, atol=1e-6, rtol=0)
+    f.save(tmp_path / "paper.pt")
+    again = load_filter(tmp_path / "paper.pt")
+    assert again.config.reference_gain is False
+    data = s.simulate(2, 20, seed=5)
+    torch.testing.assert_close(again.run(data), f.run(data), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="DAOF-v1's paper form"):
+        small("DAOF-v2", system=system, reference_gain=False)
+    training = {"kind": "DAOF-v1", "system": system, "window": 4, "network": {"num_cells": 16}}
+    with pytest.raises(ValueError, match="lack the reference gain table"):
+        FilterConfig.from_training(training, f.state_dict())
+
+
 def test_v1_with_a_zero_residual_is_the_kalman_filter_on_linear():
     """On a linear-Gaussian system the UKF's gains are the data-independent K_t of the Kalman filter:
     with its residual at zero (tanh(0) = 0) DAOF-v1 is that filter, start-up included."""
@@ -467,7 +495,7 @@ def test_load_filter_reads_a_training_checkpoint(tmp_path, run):
     the checkpoint holds, or in older ones from the training config (a recipe's ``version`` config,
     the SLF's, a typed ``kind`` config whose network section no longer names every option)."""
     # a config written before the options were retired: their surviving values load (reference_gain
-    # is DAOF-v1's: dropped for the other kinds whatever its value, as it always was)
+    # is DAOF-v1's own option: dropped for the other kinds whatever its value, as it always was)
     network = {"num_cells": 16, "depth": 2, "correction_sigmas": 0.5, "reference_gain": True}
     network |= {"correction_bound": "posterior", "innovation_input": True, "window_padding": "same"}
     if run == "typed-v1":  # today's training config: no retired option
@@ -498,16 +526,15 @@ def test_load_filter_reads_a_training_checkpoint(tmp_path, run):
     "where, option, value",
     [
         ("filter_config", "correction_bound", "kalman"),
-        ("config", "reference_gain", False),
         ("config", "innovation_input", False),
         ("saved", "window_padding", "zeros"),
-        ("weights", "reference_gain", False),
+        ("weights", "innovation_input", False),
     ],
 )
 def test_load_filter_refuses_a_checkpoint_with_a_retired_option_in_one_line(tmp_path, where, option, value):
     """A DAOF-v1 saved with an option value that was retired (docs/log/2026-12-07-retired-options.md) is
     refused with one line naming the option and that log: in the filter config a trainer stored, in an
-    older checkpoint's training config, in a saved filter's config, or only in its weights (no K̄ table)."""
+    older checkpoint's training config, in a saved filter's config, or only in its weights (no ν input)."""
     f = small("DAOF-v1", window=3)
     path = tmp_path / "checkpoint.pt"
     if where == "saved":
@@ -521,7 +548,7 @@ def test_load_filter_refuses_a_checkpoint_with_a_retired_option_in_one_line(tmp_
         elif where == "config":
             config["network"][option] = value
         else:
-            del state["reference_gain"]
+            state["policy.innovation_scale"] = state["policy.innovation_scale"][..., :0]
         atomic_save(blob, path)
     with pytest.raises(ValueError) as error:
         load_filter(path)

@@ -62,6 +62,9 @@ class Network:
     depth: int = FilterConfig.depth
     # DAOF-v1's bound of an update: ± this · σ_t per state, σ_t = a UKF's √diag P⁺_t
     correction_sigmas: float = FilterConfig.correction_sigmas
+    # DAOF-v1: the residual on a UKF's mean-gain update K̄_t ν_t | false: the paper's form f(x̂) + b_t ⊙ π(h),
+    # bounded by correction_sigmas · the UKF's √diag P⁻_t
+    reference_gain: bool = FilterConfig.reference_gain
     startup_input: bool = FilterConfig.startup_input  # closed-loop networks read ρ_t = max(0, 1 − (t−1)/50)
     critic_form: str = "mlp"  # mlp | quadratic (V(h) − Σ p_i(h)(a_i − m_i(h))²) | reward_quadratic (γ = 0)
     critic_scale: str = "window"  # the value distribution's σ from h | reward: the quadratic reward's own spread

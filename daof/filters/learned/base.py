@@ -114,9 +114,14 @@ class LearnedFilter(nn.Module, Filter):
             raise ValueError(f"a {config.kind} config makes a {target.__name__}, not a {cls.__name__}")
         return super().__new__(target)
 
+    #: whether ``FilterConfig.reference_gain`` means anything to this kind (DAOF-v1's reference update)
+    takes_reference_gain = False
+
     @classmethod
     def check_config(cls, config: FilterConfig) -> None:
         """Refuse the options this class cannot honour (``FilterConfig`` calls it on construction)."""
+        if not config.reference_gain and not cls.takes_reference_gain:
+            raise ValueError(f"reference_gain=False is DAOF-v1's paper form; a {config.kind} has no reference update")
 
     def __init__(self, config: FilterConfig, system: StochasticSystem | None = None):
         self._bind(config, system)

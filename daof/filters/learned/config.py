@@ -16,7 +16,6 @@ _VERSIONS = {"v1": "DAOF-v1", "v2": "DAOF-v2"}
 #: value that survives). Old checkpoints and configs may still hold them; ``retire_options`` reads those.
 RETIRED_OPTIONS = {
     "correction_bound": (("DAOF-v1",), "posterior"),  # b_t = k · a UKF's √diag P⁺_t
-    "reference_gain": (("DAOF-v1",), True),  # the update is K̄_t ν_t + the learned residual
     "innovation_input": (("DAOF-v1",), True),  # the network reads ν_t where its frame allows
     "window_padding": (("DAOF-v1", "DAOF-v2"), "same"),  # copies of the first frame (the SLF's always were)
     "v2_action": (("DAOF-v2",), "estimate"),  # x̂_t = π(h_t); the increment form x̂_{t−1} + b_t ⊙ π(h_t) is gone
@@ -78,6 +77,11 @@ class FilterConfig:
     #: from ``set_schedules``). π(h_t) learns the residual of a gain-scheduled Kalman update
     #: (docs/linear_check.md). DAOF-v1 also reads ν_t / √diag S_t where its frame allows (``DAOFv1``).
     correction_sigmas: float = 4.0
+    #: DAOF-v1: False is the paper's own form x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t), the whole update
+    #: learned, with b_t = correction_sigmas · the UKF's prediction error std √diag P⁻_t (it covers any
+    #: update a Kalman-type filter makes); a report row of its own beside the default's residual on
+    #: K̄_t ν_t, to show what the reference gain buys (docs/experiment1.md)
+    reference_gain: bool = True
     #: closed-loop filters also read the start-up feature ρ_t (see ``startup_feature``)
     startup_input: bool = True
     #: the policy's GELU: "tanh" (its tanh approximation) or "none" (exact, erf). Same function to
@@ -118,8 +122,8 @@ class FilterConfig:
         the SLF (the supervised recipe's config). Options a kind does not take are dropped (a config
         shared by v1 and v2 runs may set them). A config written before the options were retired may
         hold them (``retire_options``); so may the filter's ``state_dict`` where it is given: a
-        DAOF-v1 without the ``reference_gain`` table or with no innovation input where its frame
-        allows one was built with a retired option, and is refused with one line.
+        DAOF-v1 with no innovation input where its frame allows one was built with a retired option,
+        and is refused with one line, as is one whose ``reference_gain`` table contradicts its config.
         """
         kind = cfg.get("kind") or ("SLF" if cfg.get("version") is None else _VERSIONS.get(cfg.get("version")))
         if kind is None:
@@ -128,6 +132,8 @@ class FilterConfig:
         default = {f.name: f.default for f in fields(cls) if f.default is not MISSING}
         options = ("num_cells", "depth", "correction_sigmas", "startup_input", "missing_mask",
                    "kalmannet_in_mult", "kalmannet_out_mult")  # fmt: skip
+        if kind == "DAOF-v1":  # the other kinds have no reference update: a shared config's setting is not theirs
+            options += ("reference_gain",)
         config = cls(
             kind=str(kind),
             system=str(cfg["system"]),
@@ -137,7 +143,12 @@ class FilterConfig:
             **{f: type(default[f])(net.get(f, default[f])) for f in options},
         )
         if state_dict is not None and config.kind == "DAOF-v1":  # its buffers say which inputs it was built with
-            built = {"reference_gain": "reference_gain" in state_dict}
+            if ("reference_gain" in state_dict) != config.reference_gain:
+                raise ValueError(
+                    f"the training config says network.reference_gain={config.reference_gain}, but the weights "
+                    f"{'have' if config.reference_gain is False else 'lack'} the reference gain table"
+                )
+            built = {}
             scale = state_dict.get("policy.innovation_scale")
             if scale is not None and scale.shape[-1] == 0:  # no innovation input: retired unless the frame has no room
                 from daof.envs.registry import make_system

@@ -6,6 +6,10 @@ b_t = max(correction_sigmas · max(that UKF's √diag P⁺_t, its RMSE on the sy
 ``error_scale``), EXCESS_COVER · its excess error) (``set_schedules``). Where its frame allows (it holds
 u_t and u_{t−1}, or the system has no controls) the network also reads ν_t / √diag S_t. A missing
 measurement reads as its prediction (``missing_fill``).
+
+With ``reference_gain=False`` it is the paper's own form x̂_t = f(x̂_{t−1}, u_{t−1}) + b_t ⊙ π(h_t^N): no
+reference update, the whole update learned, b_t = correction_sigmas · max(the UKF's √diag P⁻_t,
+``error_scale``), wide enough for any update a Kalman-type filter would make.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ class DAOFv1(UpdateFilter):
     """DAOF-v1 (module docstring): needs a system with a model (``has_model``)."""
 
     kind = "DAOF-v1"
+    takes_reference_gain = True
     # reading the prediction beats holding the last value on every gap pattern measured
     # (diagnostics/missing_data.py, docs/missing_data.md); the others have no model to predict with
     missing_fills = ("prediction", "hold")
@@ -60,7 +65,8 @@ class DAOFv1(UpdateFilter):
     def _register_action_buffers(self) -> None:
         super()._register_action_buffers()
         s = self.system
-        self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, s.state_dim, s.measurement_dim))
+        if self.config.reference_gain:
+            self.register_buffer("reference_gain", torch.zeros(SCHEDULE_STEPS, s.state_dim, s.measurement_dim))
 
     # ----------------------------------------------------------------- model
     def predict(self, prev_estimate: torch.Tensor, prev_control: torch.Tensor) -> torch.Tensor:
@@ -86,7 +92,9 @@ class DAOFv1(UpdateFilter):
         return self.innovation(window, prediction)
 
     def reference_update(self, window: torch.Tensor, prediction: torch.Tensor, step, nu=None) -> torch.Tensor | None:
-        """K̄_t ν_t, the update of the reference gain ``reference_gain`` (K̄_t per step t)."""
+        """K̄_t ν_t, the update of the reference gain ``reference_gain`` (K̄_t per step t); None in the paper's form."""
+        if not self.config.reference_gain:
+            return None
         if nu is None:
             nu = self.innovation(window, prediction)
         return (schedule_row(self.reference_gain, step) @ nu.unsqueeze(-1)).squeeze(-1)
@@ -96,9 +104,10 @@ class DAOFv1(UpdateFilter):
     def set_schedules(self, schedule: dict[str, torch.Tensor]) -> None:
         """The per-step tables from a Kalman-type filter's ``covariance_schedule`` (rows t = 1..S).
 
-        The update bound b_t (module docstring; schedule["estimate"]_t is √diag P⁺_t), the gain
-        K̄_t = schedule["gain"]_t and, with the innovation input, its scale √diag S_t =
-        schedule["innovation"]_t. A shorter schedule is held at its last row. Stored in the checkpoint.
+        The update bound b_t (module docstring; schedule["estimate"]_t is √diag P⁺_t, schedule["prediction"]_t
+        √diag P⁻_t), the gain K̄_t = schedule["gain"]_t and, with the innovation input, its scale
+        √diag S_t = schedule["innovation"]_t. A shorter schedule is held at its last row. Stored in the
+        checkpoint.
         """
 
         def rows(values: torch.Tensor) -> torch.Tensor:
@@ -106,13 +115,17 @@ class DAOFv1(UpdateFilter):
             return torch.cat([values, values[-1:].expand(SCHEDULE_STEPS - len(values), *values.shape[1:])])
 
         sigmas = self.config.correction_sigmas
-        # never narrower than the reference's actual error on simulated data, and wide enough for what
-        # an optimal filter would change of it where the UKF is overconfident (EXCESS_COVER)
-        claimed = rows(schedule["estimate"]).clamp_min(1e-12)
-        bound = sigmas * torch.maximum(claimed, self.error_scale.to(claimed))
-        excess = EXCESS_COVER * self.system.scales().excess.to(claimed)
-        self.correction_scale.copy_(torch.maximum(bound, excess))
-        self.reference_gain.copy_(rows(schedule["gain"]))
+        if not self.config.reference_gain:  # the paper's form: the bound covers the whole update
+            prior = rows(schedule["prediction"]).clamp_min(1e-12)
+            self.correction_scale.copy_(sigmas * torch.maximum(prior, self.error_scale.to(prior)))
+        else:
+            # never narrower than the reference's actual error on simulated data, and wide enough for what
+            # an optimal filter would change of it where the UKF is overconfident (EXCESS_COVER)
+            claimed = rows(schedule["estimate"]).clamp_min(1e-12)
+            bound = sigmas * torch.maximum(claimed, self.error_scale.to(claimed))
+            excess = EXCESS_COVER * self.system.scales().excess.to(claimed)
+            self.correction_scale.copy_(torch.maximum(bound, excess))
+            self.reference_gain.copy_(rows(schedule["gain"]))
         if self.innovation_input:
             self.policy.innovation_scale.copy_(rows(schedule["innovation"]).clamp_min(1e-12))
 
