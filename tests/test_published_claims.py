@@ -583,3 +583,22 @@ def test_ungm_table_and_the_gap_daof_v1_closes():
     agrees(share, 100 * closed)
     assert closed >= 0.5 and rep["paired_with"]["filters"]["DAOF-v1"]["high"][0] < 1
     assert rep["reference_check"]["how"] == "converged"
+    # DAOF-v2 a close second to the SLF, run by run; the learned filters' error std calibrated, the UKF's not
+    assert "- x: **SLF**, 0.977 [0.969, 0.986] × DAOF-v2" in learned_winners(rep)
+    assert "the SLF's RMSE is 0.977 [0.969, 0.986] × DAOF-v2's" in doc
+    (gap,) = quoted(doc, rf"is {NUM} % behind plain regression on the window")
+    agrees(gap, pct(np.asarray(pooled["DAOF-v2"]), np.asarray(pooled["SLF"])))
+    learned = [n for n in rep["filters"] if n in ("SLF", "DAOF-v2", "DAOF-v1", "KalmanNet")]
+    nees = [rep["filters"][n]["nees"][0] for n in learned]
+    cover = [100 * rep["filters"][n]["coverage_2sigma"][0] for n in learned]
+    printed = quoted(
+        doc,
+        rf"calibrated \(NEES {NUM}–{NUM}, ±2σ coverage {NUM}–{NUM} %\); "
+        rf"the UKF's is not \(NEES {NUM}, coverage {NUM} %\)",
+    )
+    for text_, value in zip(printed, [min(nees), max(nees), min(cover), max(cover)]):
+        agrees(text_, value)
+    (
+        agrees(printed[4], rep["filters"]["UKF"]["nees"][0]),
+        agrees(printed[5], 100 * rep["filters"]["UKF"]["coverage_2sigma"][0]),
+    )
