@@ -100,7 +100,7 @@ class Profile:
     frames: dict[str, int] = MISSING  # learned row -> training budget (samples)
     particles: dict[str, int] = field(default_factory=dict)  # particle filter -> particle count
     overrides: dict[str, list[str]] = field(default_factory=dict)  # learned row -> this profile's training overrides
-    windows: list[int] = field(default_factory=list)  # the window study's N (window_study's row at each)
+    windows: list[int] = field(default_factory=list)  # the window study's N (window_study's row at each; []: none)
     system: dict[str, Any] = field(default_factory=dict)  # system parameters of the study and of every training
     uncertainty_runs: int = 256  # episodes each learned filter's uncertainty head is fitted on (0: no heads)
 
@@ -372,9 +372,7 @@ def check_experiment(cfg: ExperimentConfig) -> Profile:
     _subset(p.overrides, learned, f"{where}.overrides", "learned rows")
     if cfg.window_study is not None:
         _subset([cfg.window_study], learned, "window_study", "a learned row")
-        if not p.windows:
-            raise ValueError(f"{where}.windows is empty: the window study ({cfg.window_study}) needs at least one N")
-        for n in p.windows:
+        for n in p.windows:  # none: this profile has no window study
             _at_least(n, 1, f"{where}.windows")
         if len(set(p.windows)) != len(p.windows):
             raise ValueError(f"{where}.windows {list(p.windows)} names a window more than once")

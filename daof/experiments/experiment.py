@@ -381,7 +381,7 @@ def run_scenario(plan: Plan, sp: ScenarioPlan, start: float):
     seeds = list(cfg.training_seeds)
     rows = [seed_row(r, s, seeds) for r in cfg.learned for s in seeds]  # learning curves: every row and seed
     study_rows = None
-    if cfg.window_study:
+    if cfg.window_study and p.windows:
         row = cfg.window_study
         first = seed_row(row, cfg.training_seeds[0], cfg.training_seeds)
         names = {n: first if n == cfg.window else f"{row} (N={n})" for n in sorted(p.windows)}
