@@ -148,6 +148,11 @@ def test_an_old_v2_action_override_or_checkpoint_is_read_as_the_removed_option(t
         assert comparable_config(old) == comparable_config({**now, "kind": kind})
     increment = {**now, "network": {**now["network"], "v2_action": "increment"}}
     assert comparable_config(increment) != comparable_config(now)  # another filter: not reused
+    # a key added since (network.reference_gain, 2026-12-08): a run written before it is the default's run
+    before = {**now, "network": {k: v for k, v in now["network"].items() if k != "reference_gain"}}
+    assert "reference_gain" in now["network"] and comparable_config(before) == comparable_config(now)
+    paper_form = {**now, "network": {**now["network"], "reference_gain": False}}
+    assert comparable_config(paper_form) != comparable_config(before)
     for value in ("estimate", "increment"):
         path = tmp_path / f"{value}.pt"
         network = {**blob["config"]["network"], "v2_action": value}

@@ -29,7 +29,7 @@ from daof.filters.learned.config import RETIRED_OPTIONS, retired_refusal
 from daof.fingerprint import classical_fingerprint, data_fingerprint
 from daof.io import atomic_write_text, writable_directory
 from daof.train.checkpoint import RUN_CONFIG, atomic_save, capture_rng, load_checkpoint, restore_rng
-from daof.train.config import RETIRED_KEYS
+from daof.train.config import ADDED_KEYS, RETIRED_KEYS
 from daof.train.lock import lock_run_directory
 from daof.train.validation import plot_learning_curve, rmse_per_state, write_curve_csv
 
@@ -55,7 +55,8 @@ def comparable_config(config: dict) -> dict:
 
     A config written before an option was retired (``daof.train.config.RETIRED_KEYS``) compares without
     it where it holds the surviving value or its kind never read it (``network.v2_action: estimate``);
-    another value stays, so that run is another config (a DAOF-v2 of the removed increment form).
+    another value stays, so that run is another config (a DAOF-v2 of the removed increment form). A key
+    added since (``ADDED_KEYS``) compares without it where it holds the value every earlier run had.
     """
 
     def flat(node, prefix=""):
@@ -70,6 +71,9 @@ def comparable_config(config: dict) -> dict:
         kinds, surviving = RETIRED_OPTIONS[option]
         if key in flat_config and (flat_config[key] == surviving or config.get("kind") not in kinds):
             del flat_config[key]
+    for key, earlier in ADDED_KEYS.items():
+        if flat_config.get(key, earlier) == earlier:
+            flat_config.pop(key, None)
     return flat_config
 
 

@@ -28,6 +28,7 @@ from daof.device import resolve_device
 from daof.filters.learned.config import RETIRED_OPTIONS, FilterConfig, retired_refusal
 
 __all__ = [
+    "ADDED_KEYS",
     "CONF_DIR",
     "FILTER_KINDS",
     "RETIRED_KEYS",
@@ -199,6 +200,10 @@ CHOICES = {
 #: keys of retired filter options (``daof.filters.learned.RETIRED_OPTIONS``) an old command line may still
 #: name: an override with the surviving value is dropped, any other refused in one line (``retired_overrides``)
 RETIRED_KEYS = {"network.v2_action": "v2_action"}  # DAOF-v2's increment form, removed on 2026-12-07
+
+#: keys added after runs were made, with the value every earlier run had: a config holding that value
+#: compares equal to one written before the key existed (``comparable_config``), so finished runs stay reused
+ADDED_KEYS = {"network.reference_gain": True}  # 2026-12-08: DAOF-v1's paper form, a report row of its own
 
 #: keys that must be ≥ 1 (counts) or > 0 (sizes and rates)
 AT_LEAST_ONE = (
